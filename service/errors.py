@@ -1,0 +1,35 @@
+"""Domain errors, raised by the core and the storage layer and mapped to HTTP in one place."""
+
+from __future__ import annotations
+
+
+class LoopNetError(Exception):
+    """Base class of every error LoopNet reports to its callers."""
+
+
+class InvalidInput(LoopNetError):
+    """The caller sent something we cannot use (bad parameter, bad pose, ...)."""
+
+
+class InvalidImage(InvalidInput):
+    """The upload is not a decodable image (not an image, empty, truncated, unsupported)."""
+
+
+class ImageTooLarge(InvalidInput):
+    """The upload exceeds the configured byte or pixel limits."""
+
+
+class NotFound(LoopNetError):
+    """A named atlas, submap, frame or model version does not exist."""
+
+
+class Conflict(LoopNetError):
+    """The request contradicts the current state (duplicate name, incompatible features)."""
+
+
+class WeightsUnavailable(LoopNetError):
+    """A pretrained weights file is missing and could not be downloaded."""
+
+
+class NotReady(LoopNetError):
+    """The service is still starting (models or indexes not loaded yet)."""

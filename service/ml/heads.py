@@ -1,0 +1,165 @@
+"""LoopNet's heads on the fused feature: fusion, a similarity head and a classification head.
+
+Fusion follows the paper, F = alpha * D + (1 - alpha) * R, with D (the aggregated local
+descriptor) and R (the backbone vector) each brought into one fused space by a linear map.
+
+Before any training the embedding is already meaningful: both maps start as block identities
+(D into the first ``local_dim`` coordinates, R into the rest), and the similarity head is a
+residual MLP whose last layer starts at zero. So an untrained model computes
+
+    cos(E1, E2) = (alpha^2 cos(D1, D2) + (1 - alpha)^2 cos(R1, R2)) / (alpha^2 + (1 - alpha)^2)
+
+for frames with keypoints: a fixed blend of the two pretrained branches' cosines. Training
+(retraining jobs) moves away from that starting point; it never starts from noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass(frozen=True)
+class HeadsConfig:
+    """Shapes and the fusion weight of a model version's heads."""
+
+    local_dim: int
+    global_dim: int
+    alpha: float = 0.7
+    hidden_dim: int = 256
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must lie in [0, 1], got {self.alpha}")
+
+    @property
+    def fused_dim(self) -> int:
+        return self.local_dim + self.global_dim
+
+
+class Fusion(nn.Module):
+    """``F = alpha * P_D(D) + (1 - alpha) * P_R(R)``; ``B x local_dim, B x global_dim -> B x fused``."""
+
+    def __init__(self, config: HeadsConfig) -> None:
+        super().__init__()
+        self.alpha = config.alpha
+        self.project_local = nn.Linear(config.local_dim, config.fused_dim, bias=False)
+        self.project_global = nn.Linear(config.global_dim, config.fused_dim, bias=False)
+        with torch.no_grad():
+            self.project_local.weight.copy_(torch.eye(config.fused_dim, config.local_dim))
+            self.project_global.weight.zero_()
+            self.project_global.weight[config.local_dim :].copy_(torch.eye(config.global_dim))
+
+    def forward(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
+        return self.alpha * self.project_local(local) + (1 - self.alpha) * self.project_global(
+            global_
+        )
+
+
+class SimilarityHead(nn.Module):
+    """Residual MLP, then L2 norm: ``B x fused -> B x fused`` unit embeddings for cosine search."""
+
+    def __init__(self, config: HeadsConfig) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(
+            nn.Linear(config.fused_dim, config.hidden_dim),
+            nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_dim, config.fused_dim),
+        )
+        last = self.mlp[2]
+        assert isinstance(last, nn.Linear)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+
+    def forward(self, fused: torch.Tensor) -> torch.Tensor:
+        return F.normalize(fused + self.mlp(fused), dim=-1)
+
+
+class ClassificationHead(nn.Module):
+    """Linear classifier over an atlas's submaps: ``B x fused -> B x n_submaps`` logits."""
+
+    def __init__(self, config: HeadsConfig, num_classes: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(config.fused_dim, num_classes)
+
+    def forward(self, fused: torch.Tensor) -> torch.Tensor:
+        return self.linear(F.normalize(fused, dim=-1))
+
+
+@dataclass
+class SubmapPrediction:
+    submap_id: int
+    probability: float
+
+
+@dataclass
+class HeadsState:
+    """What a weights file holds besides tensors: the config and the classifier's labels."""
+
+    config: HeadsConfig
+    class_labels: list[int] = field(default_factory=list)
+
+
+class LoopNetHeads(nn.Module):
+    """Fusion + similarity head + (once trained) classification head of one model version.
+
+    ``class_labels[i]`` is the submap id of the classifier's output ``i``; an untrained model
+    has no classifier and ``class_labels`` is empty.
+    """
+
+    def __init__(self, config: HeadsConfig, class_labels: list[int] | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.fusion = Fusion(config)
+        self.similarity = SimilarityHead(config)
+        self.class_labels = list(class_labels or [])
+        self.classifier: ClassificationHead | None = (
+            ClassificationHead(config, len(self.class_labels)) if self.class_labels else None
+        )
+
+    @property
+    def has_classifier(self) -> bool:
+        return self.classifier is not None
+
+    def embed(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
+        """``B x local_dim, B x global_dim -> B x fused_dim`` L2-normalised embeddings."""
+        return self.similarity(self.fusion(local, global_))
+
+    def classify(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
+        """``B x n_submaps`` logits; raises if this model version has no classifier."""
+        if self.classifier is None:
+            raise RuntimeError("this model version has no trained classification head")
+        return self.classifier(self.fusion(local, global_))
+
+    @torch.inference_mode()
+    def predict_submap(self, local: torch.Tensor, global_: torch.Tensor) -> SubmapPrediction | None:
+        """The most probable submap of one frame, or None without a classifier."""
+        if self.classifier is None:
+            return None
+        probabilities = self.classify(local, global_).softmax(-1)[0]
+        best = int(probabilities.argmax())
+        return SubmapPrediction(self.class_labels[best], float(probabilities[best]))
+
+    def save(self, path: Path) -> None:
+        """Write tensors, config and labels to one file (atomically, via a temporary name)."""
+        payload: dict[str, Any] = {
+            "config": asdict(self.config),
+            "class_labels": self.class_labels,
+            "state_dict": self.state_dict(),
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(payload, tmp)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> LoopNetHeads:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+        heads = cls(HeadsConfig(**payload["config"]), payload["class_labels"])
+        heads.load_state_dict(payload["state_dict"])
+        return heads.eval()

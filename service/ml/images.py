@@ -1,0 +1,98 @@
+"""Decode uploaded bytes into RGB arrays and resize them for each network.
+
+Decoding is strict: an empty, truncated or non-image upload and one over the byte or pixel
+limits raise a typed error before any pixel buffer is allocated for the full image.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
+
+from service.errors import ImageTooLarge, InvalidImage
+
+ImageFile.LOAD_TRUNCATED_IMAGES = False
+SUPPORTED_FORMATS = ("JPEG", "PNG", "WEBP")
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    """Upper bounds on an upload, checked before decoding the pixels."""
+
+    max_bytes: int = 20 * 1024 * 1024
+    max_pixels: int = 40_000_000
+
+
+def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
+    """Decode JPEG/PNG/WebP bytes into an ``H x W x 3`` uint8 RGB array, EXIF orientation applied.
+
+    Raises:
+        InvalidImage: empty, not an image, an unsupported format, or truncated.
+        ImageTooLarge: more bytes or pixels than ``limits`` allow.
+    """
+    limits = limits or ImageLimits()
+    if not data:
+        raise InvalidImage("the uploaded file is empty")
+    if len(data) > limits.max_bytes:
+        raise ImageTooLarge(f"the upload is {len(data)} bytes; the limit is {limits.max_bytes}")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            image = Image.open(io.BytesIO(data))
+    except UnidentifiedImageError as exc:
+        raise InvalidImage("the upload is not a JPEG, PNG or WebP image") from exc
+    except (Image.DecompressionBombWarning, Image.DecompressionBombError) as exc:
+        raise ImageTooLarge(f"the image has too many pixels: {exc}") from exc
+    if image.format not in SUPPORTED_FORMATS:
+        raise InvalidImage(f"image format {image.format} is not supported; send JPEG, PNG or WebP")
+    width, height = image.size
+    if width < 1 or height < 1:
+        raise InvalidImage("the image has no pixels")
+    if width * height > limits.max_pixels:
+        raise ImageTooLarge(
+            f"the image is {width}x{height} = {width * height} pixels; "
+            f"the limit is {limits.max_pixels}"
+        )
+    try:
+        image.load()
+        rgb = (ImageOps.exif_transpose(image) or image).convert("RGB")
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise InvalidImage(f"the image could not be decoded (truncated or corrupt): {exc}") from exc
+    return np.asarray(rgb, dtype=np.uint8).copy()
+
+
+def to_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """``H x W x 3`` uint8 -> ``1 x 3 x H x W`` float32 in [0, 1]."""
+    return torch.from_numpy(rgb).permute(2, 0, 1).unsqueeze(0).float().div_(255.0)
+
+
+def resize_long_side(image: torch.Tensor, long_side: int) -> torch.Tensor:
+    """Resize ``B x 3 x H x W`` so its long side is ``long_side``, keeping the aspect ratio.
+
+    Images are both downsampled (antialiased) and upsampled: DISK was trained near 1024 px and
+    the paper resizes every frame to that long side.
+    """
+    h, w = image.shape[-2:]
+    scale = long_side / max(h, w)
+    size = (max(1, round(h * scale)), max(1, round(w * scale)))
+    if size == (h, w):
+        return image
+    return F.interpolate(
+        image, size=size, mode="bilinear", align_corners=False, antialias=scale < 1
+    )
+
+
+def resize_exact(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Resize ``B x 3 x H x W`` to exactly ``height x width`` (the backbone's input)."""
+    if tuple(image.shape[-2:]) == (height, width):
+        return image
+    down = image.shape[-2] > height or image.shape[-1] > width
+    return F.interpolate(
+        image, size=(height, width), mode="bilinear", align_corners=False, antialias=down
+    )

@@ -1,0 +1,77 @@
+"""Per-frame features <-> database rows: written with the frame, read for re-embedding and
+geometric verification without running a CNN again."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from service.ml.features import FrameFeatures, LocalFeatures
+from service.storage.models import Frame, FrameFeatureRow
+
+
+def to_row(frame_id: int | None, features: FrameFeatures) -> FrameFeatureRow:
+    """Pack features: descriptors as float16 (halves the store), everything else float32."""
+    local = features.local
+    row = FrameFeatureRow(
+        descriptor_dim=int(local.descriptors.shape[1]),
+        global_dim=int(features.global_vector.shape[0]),
+        keypoints=np.ascontiguousarray(local.keypoints, "<f4").tobytes(),
+        descriptors=np.ascontiguousarray(local.descriptors, "<f2").tobytes(),
+        scores=np.ascontiguousarray(local.scores, "<f4").tobytes(),
+        local_vector=np.ascontiguousarray(features.local_vector, "<f4").tobytes(),
+        global_vector=np.ascontiguousarray(features.global_vector, "<f4").tobytes(),
+    )
+    if frame_id is not None:
+        row.frame_id = frame_id
+    return row
+
+
+def local_features_of(row: FrameFeatureRow) -> LocalFeatures:
+    """The stored keypoints of a frame (descriptors back to float32)."""
+    return LocalFeatures(
+        keypoints=np.frombuffer(row.keypoints, "<f4").reshape(-1, 2).copy(),
+        descriptors=np.frombuffer(row.descriptors, "<f2")
+        .reshape(-1, row.descriptor_dim)
+        .astype(np.float32),
+        scores=np.frombuffer(row.scores, "<f4").copy(),
+    )
+
+
+StoredVectors = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]
+
+
+def iter_stored_vectors(
+    session: Session, atlas_id: int, *, frame_ids: Sequence[int] | None = None, batch: int = 4096
+) -> Iterator[StoredVectors]:
+    """Batches of (frame ids, local vectors D, global vectors R, submap ids, robot ids).
+
+    Only the two small vectors are read, never the keypoint blobs.
+    """
+    query = (
+        select(
+            Frame.id,
+            Frame.submap_id,
+            Frame.robot_id,
+            FrameFeatureRow.local_vector,
+            FrameFeatureRow.global_vector,
+            FrameFeatureRow.descriptor_dim,
+            FrameFeatureRow.global_dim,
+        )
+        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
+        .where(Frame.atlas_id == atlas_id)
+        .order_by(Frame.id)
+    )
+    if frame_ids is not None:
+        query = query.where(Frame.id.in_(list(frame_ids)))
+    result = session.execute(query.execution_options(yield_per=batch))
+    for rows in result.partitions(batch):
+        ids = np.array([r.id for r in rows], np.int64)
+        submaps = np.array([r.submap_id for r in rows], np.int64)
+        robots = [r.robot_id for r in rows]
+        local = np.stack([np.frombuffer(r.local_vector, "<f4") for r in rows])
+        global_ = np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows])
+        yield ids, local, global_, submaps, robots

@@ -1,0 +1,155 @@
+"""The atlas schema. Alembic migrations in ``migrations/`` create it; never ``create_all``."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    TypeDecorator,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """Timezone-aware UTC datetimes on every backend (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, _dialect: object) -> datetime | None:
+        if value is not None and value.tzinfo is not None:
+            value = value.astimezone(UTC)
+        return value
+
+    def process_result_value(self, value: datetime | None, _dialect: object) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        return value
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {dict[str, Any]: JSON}
+
+
+class Atlas(Base):
+    """A shared map: submaps of frames, embedded with one feature signature."""
+
+    __tablename__ = "atlases"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    description: Mapped[str] = mapped_column(String(1000), default="")
+    feature_signature: Mapped[dict[str, Any]]
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+    submaps: Mapped[list[Submap]] = relationship(
+        back_populates="atlas", cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class Submap(Base):
+    """A short sequence of frames of one place (the paper's S_i)."""
+
+    __tablename__ = "submaps"
+    __table_args__ = (UniqueConstraint("atlas_id", "name", name="uq_submaps_atlas_name"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+    atlas: Mapped[Atlas] = relationship(back_populates="submaps")
+
+
+class Frame(Base):
+    """One camera frame; its id is also its id in the atlas's FAISS index."""
+
+    __tablename__ = "frames"
+    # AUTOINCREMENT on SQLite: a deleted frame's id is never reused, so a stale index file can
+    # never attach an old vector to a new frame.
+    __table_args__ = (
+        Index("ix_frames_atlas_robot", "atlas_id", "robot_id"),
+        {"sqlite_autoincrement": True},
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"), index=True)
+    submap_id: Mapped[int] = mapped_column(ForeignKey("submaps.id", ondelete="CASCADE"), index=True)
+    robot_id: Mapped[str] = mapped_column(String(128))
+    timestamp: Mapped[float | None] = mapped_column(Float)
+    # Pose (camera-to-world): unit quaternion (w, x, y, z) and translation in metres.
+    qw: Mapped[float | None] = mapped_column(Float)
+    qx: Mapped[float | None] = mapped_column(Float)
+    qy: Mapped[float | None] = mapped_column(Float)
+    qz: Mapped[float | None] = mapped_column(Float)
+    tx: Mapped[float | None] = mapped_column(Float)
+    ty: Mapped[float | None] = mapped_column(Float)
+    tz: Mapped[float | None] = mapped_column(Float)
+    # Pinhole intrinsics in pixels of the uploaded image.
+    fx: Mapped[float | None] = mapped_column(Float)
+    fy: Mapped[float | None] = mapped_column(Float)
+    cx: Mapped[float | None] = mapped_column(Float)
+    cy: Mapped[float | None] = mapped_column(Float)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    keypoint_count: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+    submap: Mapped[Submap] = relationship()
+    features: Mapped[FrameFeatureRow] = relationship(
+        cascade="all, delete-orphan", passive_deletes=True, uselist=False
+    )
+
+
+class FrameFeatureRow(Base):
+    """The CNN outputs of a frame, stored once so retraining never reruns the CNNs.
+
+    Arrays are raw little-endian bytes: keypoints float32 (N x 2), descriptors float16
+    (N x descriptor_dim), scores float32 (N), local_vector float32 (descriptor_dim),
+    global_vector float32 (global_dim).
+    """
+
+    __tablename__ = "frame_features"
+
+    frame_id: Mapped[int] = mapped_column(
+        ForeignKey("frames.id", ondelete="CASCADE"), primary_key=True
+    )
+    descriptor_dim: Mapped[int] = mapped_column(Integer)
+    global_dim: Mapped[int] = mapped_column(Integer)
+    keypoints: Mapped[bytes] = mapped_column(LargeBinary)
+    descriptors: Mapped[bytes] = mapped_column(LargeBinary)
+    scores: Mapped[bytes] = mapped_column(LargeBinary)
+    local_vector: Mapped[bytes] = mapped_column(LargeBinary)
+    global_vector: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class ModelVersion(Base):
+    """A version of an atlas's heads; exactly one per atlas is active."""
+
+    __tablename__ = "model_versions"
+    __table_args__ = (UniqueConstraint("atlas_id", "version", name="uq_model_versions_atlas"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"), index=True)
+    version: Mapped[int] = mapped_column(Integer)
+    config: Mapped[dict[str, Any]]
+    metrics: Mapped[dict[str, Any]]
+    # None: the untrained initial heads, rebuilt exactly from ``config``.
+    weights_path: Mapped[str | None] = mapped_column(String(1024))
+    is_active: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -1,0 +1,368 @@
+"""The domain service behind the API and CLI: atlases, ingest and query.
+
+It owns the feature pipeline (CNNs), the database session factory and one loaded state per
+atlas (active heads + FAISS index). Writes follow one order so that a rejected request leaves
+nothing behind: validate and decode, run the CNNs, embed, then commit the rows in one
+transaction, and only then add the vector to the in-memory index.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from sqlalchemy.orm import Session, sessionmaker
+
+from service import models_store
+from service.config import Settings
+from service.errors import Conflict, InvalidInput, NotReady
+from service.geometry import Intrinsics, Pose
+from service.index import AtlasIndex
+from service.ml.features import FrameFeatures
+from service.ml.heads import LoopNetHeads
+from service.ml.images import decode_image
+from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.feature_store import iter_stored_vectors
+from service.storage.models import Atlas, Frame, ModelVersion
+
+log = logging.getLogger(__name__)
+
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+
+
+@dataclass
+class LoadedAtlas:
+    """What queries of one atlas need in memory: its active heads and its index."""
+
+    atlas_id: int
+    model_version: int
+    heads: LoopNetHeads
+    index: AtlasIndex
+    dirty: bool = False
+
+
+@dataclass
+class Candidate:
+    frame_id: int
+    submap: str
+    robot_id: str
+    similarity: float
+
+
+@dataclass
+class SubmapGuess:
+    available: bool
+    submap: str | None = None
+    probability: float | None = None
+    reason: str | None = None
+
+
+@dataclass
+class QueryResult:
+    atlas: str
+    model_version: int
+    match: Candidate | None
+    candidates: list[Candidate]
+    loop_closure: bool
+    threshold: float
+    predicted_submap: SubmapGuess
+    keypoints: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def validate_name(kind: str, name: str) -> str:
+    if not NAME_PATTERN.match(name):
+        raise InvalidInput(
+            f"{kind} name {name!r} is invalid: use 1-64 letters, digits, '.', '_' or '-', "
+            "starting with a letter or digit"
+        )
+    return name
+
+
+class AtlasService:
+    """Atlases, submaps, frames and queries over one database and one data directory."""
+
+    def __init__(
+        self, settings: Settings, sessions: sessionmaker[Session], pipeline: FeaturePipeline
+    ) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.pipeline = pipeline
+        self._loaded: dict[int, LoadedAtlas] = {}
+        self._loaded_lock = threading.Lock()
+        # One frame through the CNNs at a time: torch already uses every core per frame.
+        self._inference_lock = threading.Lock()
+
+    # ----- atlases -----------------------------------------------------------------------
+
+    def create_atlas(self, name: str, description: str = "") -> Atlas:
+        validate_name("atlas", name)
+        heads_config = self.pipeline.heads_config()
+        with transaction(self.sessions) as session:
+            atlas = repo.create_atlas(
+                session,
+                name=name,
+                description=description,
+                feature_signature=self.pipeline.signature,
+            )
+            repo.create_model_version(
+                session,
+                atlas_id=atlas.id,
+                config=models_store.initial_version_config(heads_config),
+                metrics={},
+                weights_path=None,
+                activate=True,
+            )
+        return atlas
+
+    def delete_atlas(self, name: str) -> None:
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=name)
+            atlas_id = atlas.id
+            session.delete(atlas)
+        with self._loaded_lock:
+            self._loaded.pop(atlas_id, None)
+        for path in self.settings.index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
+            path.unlink(missing_ok=True)
+        shutil.rmtree(self.settings.models_dir / f"atlas-{atlas_id}", ignore_errors=True)
+
+    def atlas_summary(self, session: Session, atlas: Atlas) -> dict[str, Any]:
+        version = repo.active_model_version(session, atlas_id=atlas.id)
+        return {
+            "name": atlas.name,
+            "description": atlas.description,
+            "created_at": atlas.created_at,
+            "submaps": repo.count_submaps(session, atlas_id=atlas.id),
+            "frames": repo.count_frames(session, atlas_id=atlas.id),
+            "active_model_version": version.version,
+            "classifier_trained": bool(version.config.get("trained")),
+            "feature_signature": atlas.feature_signature,
+        }
+
+    # ----- loaded state ------------------------------------------------------------------
+
+    def load_all(self) -> None:
+        """Load heads and reconcile the index of every atlas (at start-up)."""
+        with self.sessions() as session:
+            atlas_ids = [a.id for a in repo.list_atlases(session)]
+        for atlas_id in atlas_ids:
+            self.loaded(atlas_id)
+
+    def loaded(self, atlas_id: int) -> LoadedAtlas:
+        """The in-memory state of an atlas, loading and reconciling it on first use."""
+        with self._loaded_lock:
+            state = self._loaded.get(atlas_id)
+            if state is None:
+                state = self._load(atlas_id)
+                self._loaded[atlas_id] = state
+            return state
+
+    def _index_path(self, atlas_id: int, version: int) -> Path:
+        return self.settings.index_dir / f"atlas-{atlas_id}-v{version}.faiss"
+
+    def _load(self, atlas_id: int) -> LoadedAtlas:
+        with self.sessions() as session:
+            version: ModelVersion = repo.active_model_version(session, atlas_id=atlas_id)
+            heads = models_store.load_heads(version, self.settings.models_dir)
+            robot_of = repo.frame_ids_and_robots(session, atlas_id=atlas_id)
+            path = self._index_path(atlas_id, version.version)
+            index = None
+            if path.is_file():
+                try:
+                    index = AtlasIndex.load(path, heads.config.fused_dim)
+                except Exception as exc:  # a corrupt cache is rebuilt, never trusted
+                    log.warning("index %s unreadable (%s); rebuilding from the database", path, exc)
+            if index is None:
+                index = AtlasIndex(heads.config.fused_dim)
+            state = LoadedAtlas(atlas_id, version.version, heads, index)
+            self._reconcile(session, state, robot_of)
+        return state
+
+    def _reconcile(self, session: Session, state: LoadedAtlas, robot_of: dict[int, str]) -> None:
+        """Make the index hold exactly the database's frames: drop extras, embed missing ones."""
+        in_index = set(state.index.ids().tolist())
+        in_db = set(robot_of)
+        extra = np.array(sorted(in_index - in_db), np.int64)
+        missing = sorted(in_db - in_index)
+        state.index.remove(extra)
+        state.index.set_robots({i: robot_of[i] for i in in_db & in_index})
+        for start in range(0, len(missing), 10_000):
+            chunk = missing[start : start + 10_000]
+            for ids, local, global_, _, robots in iter_stored_vectors(
+                session, state.atlas_id, frame_ids=chunk
+            ):
+                state.index.add(ids, embed_vectors(state.heads, local, global_), robots)
+        if len(extra) or missing:
+            log.info(
+                "atlas %d: index caught up with the database (+%d, -%d frames)",
+                state.atlas_id,
+                len(missing),
+                len(extra),
+            )
+            state.dirty = True
+
+    def rebuild_index(self, atlas_name: str) -> int:
+        """Re-embed every frame of an atlas from stored features into a fresh index file."""
+        with self.sessions() as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            atlas_id = atlas.id
+        with self._loaded_lock:
+            self._loaded.pop(atlas_id, None)
+            with self.sessions() as session:
+                version = repo.active_model_version(session, atlas_id=atlas_id)
+            self._index_path(atlas_id, version.version).unlink(missing_ok=True)
+        state = self.loaded(atlas_id)
+        self.save_index(state)
+        return state.index.size
+
+    def save_index(self, state: LoadedAtlas) -> None:
+        state.index.save(self._index_path(state.atlas_id, state.model_version))
+        state.dirty = False
+
+    def flush(self) -> None:
+        """Write every changed index to disk (at shutdown; a crash is caught up at start)."""
+        with self._loaded_lock:
+            states = list(self._loaded.values())
+        for state in states:
+            if state.dirty:
+                self.save_index(state)
+
+    # ----- frames ------------------------------------------------------------------------
+
+    def _check_signature(self, atlas: Atlas) -> None:
+        if atlas.feature_signature != self.pipeline.signature:
+            raise Conflict(
+                f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
+                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+            )
+
+    def extract(self, image_bytes: bytes) -> tuple[FrameFeatures, float]:
+        """Decode and run the CNNs; returns the features and the decode time in ms."""
+        start = time.perf_counter()
+        rgb = decode_image(image_bytes, self.settings.image_limits)
+        decode_ms = (time.perf_counter() - start) * 1000.0
+        with self._inference_lock:
+            features = self.pipeline.extract(rgb)
+        return features, decode_ms
+
+    def ingest_frame(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> Frame:
+        """Store a frame, its features and its embedding; nothing is written if any step fails."""
+        validate_name("robot", robot_id)
+        if timestamp is not None and not np.isfinite(timestamp):
+            raise InvalidInput("timestamp must be a finite number of seconds")
+        with self.sessions() as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            self._check_signature(atlas)
+            repo.get_submap(session, atlas=atlas, name=submap_name)
+            atlas_id = atlas.id
+        features, _ = self.extract(image_bytes)
+        state = self.loaded(atlas_id)
+        embedding = self._embed(state.heads, features)
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            submap = repo.get_submap(session, atlas=atlas, name=submap_name)
+            frame = repo.add_frame(
+                session,
+                atlas=atlas,
+                submap=submap,
+                robot_id=robot_id,
+                timestamp=timestamp,
+                pose=pose,
+                intrinsics=intrinsics,
+                features=features,
+            )
+        state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+        state.dirty = True
+        return frame
+
+    @staticmethod
+    def _embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
+        return embed_vectors(heads, features.local_vector[None], features.global_vector[None])[0]
+
+    # ----- queries -----------------------------------------------------------------------
+
+    def query(
+        self, *, atlas_name: str, image_bytes: bytes, k: int = 5, robot_id: str | None = None
+    ) -> QueryResult:
+        """The frames of the atlas most similar to an image, and the loop-closure decision."""
+        if not 1 <= k <= self.settings.max_k:
+            raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
+        if robot_id is not None:
+            validate_name("robot", robot_id)
+        total_start = time.perf_counter()
+        with self.sessions() as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            self._check_signature(atlas)
+            atlas_id = atlas.id
+        features, decode_ms = self.extract(image_bytes)
+        state = self.loaded(atlas_id)
+        timings = {"decode": decode_ms, **features.timings_ms}
+
+        start = time.perf_counter()
+        embedding = self._embed(state.heads, features)
+        prediction = state.heads.predict_submap(
+            torch.from_numpy(features.local_vector[None]),
+            torch.from_numpy(features.global_vector[None]),
+        )
+        timings["heads"] = (time.perf_counter() - start) * 1000.0
+
+        start = time.perf_counter()
+        hits = state.index.search(embedding, k, robot_id=robot_id)
+        timings["search"] = (time.perf_counter() - start) * 1000.0
+
+        with self.sessions() as session:
+            names = repo.submap_names(session, atlas_id=atlas_id)
+            frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])
+        candidates = [
+            Candidate(h.frame_id, names[f.submap_id], f.robot_id, h.similarity)
+            for h in hits
+            if (f := frames.get(h.frame_id)) is not None
+        ]
+        if prediction is None:
+            guess = SubmapGuess(
+                available=False,
+                reason=(
+                    f"model version {state.model_version} of atlas '{atlas_name}' has no trained "
+                    "classification head; run a retrain job to get submap predictions"
+                ),
+            )
+        else:
+            guess = SubmapGuess(True, names.get(prediction.submap_id), prediction.probability)
+        threshold = self.settings.loop_closure_threshold
+        match = candidates[0] if candidates else None
+        timings["total"] = (time.perf_counter() - total_start) * 1000.0
+        return QueryResult(
+            atlas=atlas_name,
+            model_version=state.model_version,
+            match=match,
+            candidates=candidates,
+            loop_closure=match is not None and match.similarity >= threshold,
+            threshold=threshold,
+            predicted_submap=guess,
+            keypoints=features.local.count,
+            timings_ms={name: round(ms, 3) for name, ms in timings.items()},
+        )
+
+    def ensure_ready(self) -> None:
+        if self.pipeline is None:
+            raise NotReady("the model is still loading")

@@ -1,0 +1,100 @@
+"""The FAISS index of one atlas: ids are frame ids, inner product on unit embeddings (cosine).
+
+The database is the source of truth; the index file under the data directory is a cache that
+``reconcile`` brings back in step with the database after a restart or a crash.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Hit:
+    frame_id: int
+    similarity: float
+
+
+class AtlasIndex:
+    """Exact inner-product search over an atlas's frame embeddings, with robot filters."""
+
+    def __init__(self, dim: int, index: faiss.Index | None = None) -> None:
+        self.dim = dim
+        # faiss's SWIG classes are only partly typed: treat the index as Any.
+        self._index: Any = index if index is not None else faiss.IndexIDMap2(faiss.IndexFlatIP(dim))
+        if self._index.d != dim:
+            raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
+        self._robot_of: dict[int, str] = {}
+        self._lock = threading.RLock()
+
+    @property
+    def size(self) -> int:
+        return int(self._index.ntotal)
+
+    def ids(self) -> np.ndarray:
+        """The frame ids held, as int64 (unsorted)."""
+        with self._lock:
+            return faiss.vector_to_array(self._index.id_map).astype(np.int64)
+
+    def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> None:
+        """Add ``N`` unit ``vectors`` under frame ``ids`` taken by ``robots``."""
+        if len(ids) == 0:
+            return
+        vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+        if vectors.shape != (len(ids), self.dim):
+            raise ValueError(f"expected {len(ids)} x {self.dim} vectors, got {vectors.shape}")
+        with self._lock:
+            self._index.add_with_ids(vectors, np.asarray(ids, dtype=np.int64))
+            self._robot_of.update(zip((int(i) for i in ids), robots, strict=True))
+
+    def set_robots(self, robot_of: dict[int, str]) -> None:
+        """Attach robot ids to frames loaded from a file (the file holds vectors only)."""
+        with self._lock:
+            self._robot_of.update(robot_of)
+
+    def remove(self, ids: np.ndarray) -> int:
+        if len(ids) == 0:
+            return 0
+        with self._lock:
+            removed = int(self._index.remove_ids(np.asarray(ids, dtype=np.int64)))
+            for i in ids:
+                self._robot_of.pop(int(i), None)
+            return removed
+
+    def search(self, vector: np.ndarray, k: int, robot_id: str | None = None) -> list[Hit]:
+        """The ``k`` most similar frames to one unit ``vector`` (optionally one robot's only)."""
+        query = np.ascontiguousarray(vector, dtype=np.float32).reshape(1, self.dim)
+        with self._lock:
+            if self.size == 0:
+                return []
+            params = None
+            if robot_id is not None:
+                allowed = np.array(
+                    [i for i, r in self._robot_of.items() if r == robot_id], dtype=np.int64
+                )
+                if len(allowed) == 0:
+                    return []
+                params = faiss.SearchParameters(sel=faiss.IDSelectorBatch(allowed))  # type: ignore[call-arg]
+            k = min(k, self.size)
+            similarities, ids = self._index.search(query, k, params=params)
+        return [
+            Hit(int(i), float(s)) for i, s in zip(ids[0], similarities[0], strict=True) if i >= 0
+        ]
+
+    def save(self, path: Path) -> None:
+        """Write the index atomically (temporary file, then rename)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with self._lock:
+            faiss.write_index(self._index, str(tmp))
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path, dim: int) -> AtlasIndex:
+        return cls(dim, faiss.read_index(str(path)))

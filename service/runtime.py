@@ -1,0 +1,98 @@
+"""Start-up and shutdown of everything a LoopNet process holds: database, CNNs, indexes.
+
+Shared by the HTTP app (in its lifespan) and the CLI commands that work on the database
+directly (``reindex``), so that both build the service the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import torch
+from sqlalchemy import Engine, text
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.atlas_service import AtlasService
+from service.config import Settings
+from service.errors import NotReady
+from service.ml.pipeline import FeaturePipeline
+from service.storage.db import make_engine, make_session_factory, upgrade_database
+
+log = logging.getLogger(__name__)
+
+
+class Runtime:
+    """The process's service, built in the background so liveness answers during start-up."""
+
+    def __init__(self, settings: Settings, pipeline: FeaturePipeline | None = None) -> None:
+        self.settings = settings
+        self._pipeline = pipeline  # an already loaded pipeline (tests share one)
+        self.engine: Engine | None = None
+        self.sessions: sessionmaker[Session] | None = None
+        self._service: AtlasService | None = None
+        self.error: str | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self, *, background: bool = True) -> None:
+        """Migrate the database, then load the CNNs and every atlas's index."""
+        self.settings.data_dir.mkdir(parents=True, exist_ok=True)
+        if self.settings.torch_threads:
+            torch.set_num_threads(self.settings.torch_threads)
+        upgrade_database(self.settings.resolved_database_url)
+        self.engine = make_engine(self.settings.resolved_database_url)
+        self.sessions = make_session_factory(self.engine)
+        if background:
+            self._thread = threading.Thread(target=self._load, name="loopnet-load", daemon=True)
+            self._thread.start()
+        else:
+            self._load()
+            if self.error:
+                raise RuntimeError(self.error)
+
+    def _load(self) -> None:
+        try:
+            preset = self.settings.preset()
+            log.info("loading model preset %r (%s, %s)", preset.name, preset.local, preset.backbone)
+            assert self.sessions is not None
+            pipeline = self._pipeline or FeaturePipeline(preset)
+            service = AtlasService(self.settings, self.sessions, pipeline)
+            service.load_all()
+            self._service = service
+            log.info("ready")
+        except Exception as exc:
+            log.exception("start-up failed")
+            self.error = f"{type(exc).__name__}: {exc}"
+
+    def wait_ready(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    @property
+    def ready(self) -> bool:
+        return self._service is not None
+
+    @property
+    def service(self) -> AtlasService:
+        if self._service is None:
+            raise NotReady(
+                f"start-up failed: {self.error}" if self.error else "the model is still loading"
+            )
+        return self._service
+
+    def database_reachable(self) -> bool:
+        if self.engine is None:
+            return False
+        try:
+            with self.engine.connect() as connection:
+                connection.execute(text("SELECT 1"))
+            return True
+        except Exception:
+            return False
+
+    def stop(self) -> None:
+        self.wait_ready(timeout=60)
+        if self._service is not None:
+            self._service.flush()
+        if self.engine is not None:
+            self.engine.dispose()

@@ -1,0 +1,22 @@
+"""Dependencies shared by the routes."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from service.atlas_service import AtlasService
+from service.runtime import Runtime
+
+
+def get_runtime(request: Request) -> Runtime:
+    return request.app.state.runtime
+
+
+def get_service(runtime: Annotated[Runtime, Depends(get_runtime)]) -> AtlasService:
+    return runtime.service  # raises NotReady (503) while loading
+
+
+RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
+ServiceDep = Annotated[AtlasService, Depends(get_service)]

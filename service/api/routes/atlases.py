@@ -1,0 +1,99 @@
+"""Atlases, their submaps and their model versions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Response, status
+
+from service.api.deps import ServiceDep
+from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
+from service.atlas_service import validate_name
+from service.storage import repository as repo
+from service.storage.db import transaction
+
+router = APIRouter(tags=["atlases"])
+NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
+
+
+@router.post(
+    "/atlases",
+    response_model=AtlasOut,
+    status_code=status.HTTP_201_CREATED,
+    responses={409: {"model": ErrorOut}},
+    summary="Create an atlas",
+)
+def create_atlas(body: AtlasIn, service: ServiceDep) -> AtlasOut:
+    service.create_atlas(body.name, body.description)
+    return get_atlas(body.name, service)
+
+
+@router.get("/atlases", response_model=list[AtlasOut], summary="List atlases")
+def list_atlases(service: ServiceDep) -> list[AtlasOut]:
+    with service.sessions() as session:
+        return [
+            AtlasOut(**service.atlas_summary(session, atlas))
+            for atlas in repo.list_atlases(session)
+        ]
+
+
+@router.get("/atlases/{atlas}", response_model=AtlasOut, responses=NOT_FOUND)
+def get_atlas(atlas: str, service: ServiceDep) -> AtlasOut:
+    with service.sessions() as session:
+        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=atlas)))
+
+
+@router.delete(
+    "/atlases/{atlas}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=NOT_FOUND,
+    summary="Delete an atlas with its submaps, frames, features, models and index",
+)
+def delete_atlas(atlas: str, service: ServiceDep) -> Response:
+    service.delete_atlas(atlas)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post(
+    "/atlases/{atlas}/submaps",
+    response_model=SubmapOut,
+    status_code=status.HTTP_201_CREATED,
+    responses={**NOT_FOUND, 409: {"model": ErrorOut}},
+    summary="Create a submap",
+)
+def create_submap(atlas: str, body: SubmapIn, service: ServiceDep) -> SubmapOut:
+    validate_name("submap", body.name)
+    with transaction(service.sessions) as session:
+        submap = repo.create_submap(
+            session, atlas=repo.get_atlas(session, name=atlas), name=body.name
+        )
+        return SubmapOut(name=submap.name, frames=0, created_at=submap.created_at)
+
+
+@router.get("/atlases/{atlas}/submaps", response_model=list[SubmapOut], responses=NOT_FOUND)
+def list_submaps(atlas: str, service: ServiceDep) -> list[SubmapOut]:
+    with service.sessions() as session:
+        rows = repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
+        return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
+
+
+@router.get(
+    "/atlases/{atlas}/models",
+    response_model=list[ModelVersionOut],
+    responses=NOT_FOUND,
+    summary="List the atlas's model versions",
+)
+def list_models(atlas: str, service: ServiceDep) -> list[ModelVersionOut]:
+    with service.sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        return [
+            ModelVersionOut(
+                version=v.version,
+                is_active=v.is_active,
+                trained=bool(v.config.get("trained")),
+                config=v.config,
+                metrics=v.metrics,
+                created_at=v.created_at,
+            )
+            for v in repo.list_model_versions(session, atlas_id=found.id)
+        ]

@@ -1,0 +1,96 @@
+"""Adding and reading frames."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, UploadFile, status
+
+from service.api.deps import ServiceDep
+from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
+from service.api.uploads import parse_json_field, read_image_upload
+from service.geometry import Intrinsics, Pose
+from service.storage import repository as repo
+from service.storage.models import Frame
+
+router = APIRouter(tags=["frames"])
+ERRORS: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorOut, "description": "Unknown atlas or submap"},
+    409: {"model": ErrorOut, "description": "The atlas was built with other features"},
+    413: {"model": ErrorOut, "description": "Image over the byte or pixel limit"},
+    422: {"model": ErrorOut, "description": "Not a decodable image, or a bad field"},
+}
+
+
+@router.post(
+    "/atlases/{atlas}/frames",
+    response_model=FrameOut,
+    status_code=status.HTTP_201_CREATED,
+    responses=ERRORS,
+    summary="Add a camera frame to a submap",
+)
+def add_frame(
+    atlas: str,
+    service: ServiceDep,
+    image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
+    submap: Annotated[str, Form(description="Name of an existing submap.")],
+    robot_id: Annotated[str, Form(description="The robot that took the frame.")],
+    timestamp: Annotated[float | None, Form(description="Capture time, seconds.")] = None,
+    pose: Annotated[
+        str | None,
+        Form(description='JSON: {"rotation": [w, x, y, z], "translation": [x, y, z]}'),
+    ] = None,
+    intrinsics: Annotated[
+        str | None, Form(description='JSON: {"fx": .., "fy": .., "cx": .., "cy": ..}')
+    ] = None,
+) -> FrameOut:
+    pose_in = parse_json_field("pose", pose, PoseIn)
+    intrinsics_in = parse_json_field("intrinsics", intrinsics, IntrinsicsIn)
+    frame = service.ingest_frame(
+        atlas_name=atlas,
+        submap_name=submap,
+        robot_id=robot_id,
+        image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
+        timestamp=timestamp,
+        pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
+        intrinsics=Intrinsics(**intrinsics_in.model_dump()) if intrinsics_in else None,
+    )
+    return get_frame(atlas, frame.id, service)
+
+
+@router.get(
+    "/atlases/{atlas}/frames/{frame_id}",
+    response_model=FrameOut,
+    responses={404: {"model": ErrorOut}},
+    summary="A frame's metadata",
+)
+def get_frame(atlas: str, frame_id: int, service: ServiceDep) -> FrameOut:
+    with service.sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
+        return frame_out(found.name, frame)
+
+
+def frame_out(atlas: str, frame: Frame) -> FrameOut:
+    pose = None
+    if frame.qw is not None:
+        pose = PoseIn(
+            rotation=[frame.qw, frame.qx, frame.qy, frame.qz],  # type: ignore[list-item]
+            translation=[frame.tx, frame.ty, frame.tz],  # type: ignore[list-item]
+        )
+    intrinsics = None
+    if frame.fx is not None:
+        intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)  # type: ignore[arg-type]
+    return FrameOut(
+        frame_id=frame.id,
+        atlas=atlas,
+        submap=frame.submap.name,
+        robot_id=frame.robot_id,
+        timestamp=frame.timestamp,
+        pose=pose,
+        intrinsics=intrinsics,
+        width=frame.width,
+        height=frame.height,
+        keypoints=frame.keypoint_count,
+        created_at=frame.created_at,
+    )

@@ -1,0 +1,42 @@
+"""Liveness and readiness."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse
+
+from service.api.deps import RuntimeDep
+from service.api.schemas import HealthOut, ReadyOut
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/health", response_model=HealthOut, summary="The process is up")
+def health() -> HealthOut:
+    return HealthOut(status="ok")
+
+
+@router.get(
+    "/ready",
+    response_model=ReadyOut,
+    responses={503: {"model": ReadyOut}},
+    summary="Models loaded, indexes reconciled and the database reachable",
+)
+def ready(runtime: RuntimeDep) -> ReadyOut | JSONResponse:
+    if runtime.ready and runtime.database_reachable():
+        preset = runtime.service.pipeline.preset
+        return ReadyOut(
+            ready=True,
+            detail="ready",
+            preset=preset.name,
+            backbone=preset.backbone.name,
+            local_extractor=preset.local.name,
+        )
+    if runtime.error:
+        detail = f"start-up failed: {runtime.error}"
+    elif not runtime.ready:
+        detail = "loading models and indexes"
+    else:
+        detail = "database unreachable"
+    body = ReadyOut(ready=False, detail=detail)
+    return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": "2"})

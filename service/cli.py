@@ -1,0 +1,205 @@
+"""The ``loopnet`` command: serve, ingest, query, reindex, db upgrade.
+
+``ingest`` and ``query`` talk to a running service over HTTP (the same path robots use), so the
+server's in-memory index always sees what they add. ``reindex`` and ``db upgrade`` work on the
+database directly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".webp"}
+DEFAULT_URL = "http://127.0.0.1:8000"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    return int(args.func(args) or 0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="loopnet", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    serve = commands.add_parser("serve", help="run the HTTP service (migrates the database first)")
+    serve.add_argument("--host", help="bind address (default: LOOPNET_HOST or 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port (default: LOOPNET_PORT or 8000)")
+    serve.set_defaults(func=cmd_serve)
+
+    ingest = commands.add_parser("ingest", help="add a folder of images to a submap")
+    ingest.add_argument("folder", type=Path)
+    ingest.add_argument("--atlas", required=True)
+    ingest.add_argument("--submap", required=True)
+    ingest.add_argument("--robot", default="cli", help="robot id recorded with each frame")
+    ingest.add_argument("--create", action="store_true", help="create the atlas/submap if missing")
+    ingest.add_argument("--url", default=DEFAULT_URL, help=f"service address ({DEFAULT_URL})")
+    ingest.set_defaults(func=cmd_ingest)
+
+    query = commands.add_parser("query", help="find the place an image revisits")
+    query.add_argument("image", type=Path)
+    query.add_argument("--atlas", required=True)
+    query.add_argument("-k", type=int, default=5)
+    query.add_argument("--robot", help="only match frames of this robot")
+    query.add_argument("--url", default=DEFAULT_URL)
+    query.set_defaults(func=cmd_query)
+
+    reindex = commands.add_parser(
+        "reindex", help="rebuild atlas indexes from the database's stored features (no CNN pass)"
+    )
+    reindex.add_argument("atlases", nargs="*", help="atlas names (default: all)")
+    reindex.set_defaults(func=cmd_reindex)
+
+    seed = commands.add_parser("weights", help="pretrained weights in the torch hub cache")
+    seed_commands = seed.add_subparsers(dest="weights_command", required=True)
+    seed_cmd = seed_commands.add_parser(
+        "seed", help="link a folder of verified weights files into $TORCH_HOME/hub/checkpoints"
+    )
+    seed_cmd.add_argument("folder", type=Path)
+    seed_cmd.set_defaults(func=cmd_weights_seed)
+
+    db = commands.add_parser("db", help="database maintenance")
+    db_commands = db.add_subparsers(dest="db_command", required=True)
+    upgrade = db_commands.add_parser("upgrade", help="apply migrations (alembic upgrade head)")
+    upgrade.add_argument("--revision", default="head")
+    upgrade.set_defaults(func=cmd_db_upgrade)
+    return parser
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.config import Settings
+
+    settings = Settings()
+    uvicorn.run(
+        create_app(settings),
+        host=args.host or settings.host,
+        port=args.port or settings.port,
+        log_level="info",
+    )
+    return 0
+
+
+def _client(url: str):  # type: ignore[no-untyped-def]
+    import httpx
+
+    return httpx.Client(base_url=url.rstrip("/") + "/v1", timeout=300)
+
+
+def _fail(response) -> int:  # type: ignore[no-untyped-def]
+    try:
+        detail = response.json().get("detail", response.text)
+    except ValueError:
+        detail = response.text
+    print(f"error {response.status_code}: {detail}", file=sys.stderr)
+    return 1
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files directly in ``folder``, in natural name order (frame order)."""
+    import re
+
+    def natural(path: Path) -> list[object]:
+        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+        key=natural,
+    )
+
+
+def cmd_ingest(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    if not args.folder.is_dir():
+        print(f"error: {args.folder} is not a folder", file=sys.stderr)
+        return 2
+    images = list_images(args.folder)
+    if not images:
+        print(f"error: no JPEG/PNG/WebP images in {args.folder}", file=sys.stderr)
+        return 2
+    with _client(args.url) as client:
+        if args.create:
+            for path, body in (
+                ("/atlases", {"name": args.atlas}),
+                (f"/atlases/{args.atlas}/submaps", {"name": args.submap}),
+            ):
+                response = client.post(path, json=body)
+                if response.status_code not in (201, 409):
+                    return _fail(response)
+        for image in tqdm(images, desc=f"ingest {args.atlas}/{args.submap}", unit="frame"):
+            response = client.post(
+                f"/atlases/{args.atlas}/frames",
+                data={"submap": args.submap, "robot_id": args.robot},
+                files={"image": (image.name, image.read_bytes())},
+            )
+            if response.status_code != 201:
+                print(f"{image}: ", end="", file=sys.stderr)
+                return _fail(response)
+    print(f"ingested {len(images)} frames into {args.atlas}/{args.submap}")
+    return 0
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    data: dict[str, str] = {"k": str(args.k)}
+    if args.robot:
+        data["robot_id"] = args.robot
+    with _client(args.url) as client:
+        response = client.post(
+            f"/atlases/{args.atlas}/query",
+            data=data,
+            files={"image": (args.image.name, args.image.read_bytes())},
+        )
+    if response.status_code != 200:
+        return _fail(response)
+    print(json.dumps(response.json(), indent=2))
+    return 0
+
+
+def cmd_reindex(args: argparse.Namespace) -> int:
+    from service.config import Settings
+    from service.runtime import Runtime
+    from service.storage import repository as repo
+
+    runtime = Runtime(Settings())
+    runtime.start(background=False)
+    service = runtime.service
+    with service.sessions() as session:
+        names = args.atlases or [a.name for a in repo.list_atlases(session)]
+    for name in names:
+        print(f"{name}: {service.rebuild_index(name)} frames indexed")
+    runtime.stop()
+    return 0
+
+
+def cmd_weights_seed(args: argparse.Namespace) -> int:
+    from service.ml.weights import seed_cache
+
+    for path in seed_cache(args.folder):
+        print(path)
+    return 0
+
+
+def cmd_db_upgrade(args: argparse.Namespace) -> int:
+    from service.config import Settings
+    from service.storage.db import upgrade_database
+
+    settings = Settings()
+    upgrade_database(settings.resolved_database_url, args.revision)
+    print(f"database at {settings.resolved_database_url} is at revision {args.revision}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

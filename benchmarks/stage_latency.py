@@ -1,0 +1,168 @@
+"""Per-stage latency of ingest and query: decode, DISK at several long sides, backbone, heads,
+search, database write. Prints medians (and p90) over repeated runs on one real frame.
+
+    python benchmarks/stage_latency.py --image ../shared/data/gardenspoint_first10/query/0.jpg
+
+Needs the weights in $TORCH_HOME/hub/checkpoints (``loopnet weights seed ../shared/weights``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from service.errors import WeightsUnavailable
+from service.index import AtlasIndex
+from service.ml.aggregation import aggregate_descriptors
+from service.ml.backbones import BACKBONES, BackboneConfig, GlobalBackbone, build_backbone
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.images import decode_image
+from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
+from service.ml.pipeline import embed_vectors
+
+
+def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - start) * 1000.0)
+    return samples
+
+
+def report(name: str, samples: list[float]) -> None:
+    p90 = float(np.percentile(samples, 90))
+    print(
+        f"| {name:<38} | {statistics.median(samples):>10.2f} | {p90:>10.2f} | {len(samples):>3} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--image", type=Path, default=Path("../shared/data/gardenspoint_first10/query/0.jpg")
+    )
+    parser.add_argument("--long-sides", type=int, nargs="+", default=[256, 512, 1024])
+    parser.add_argument("--max-keypoints", type=int, default=1024)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument(
+        "--index-size", type=int, default=10_000, help="synthetic frames in the index"
+    )
+    args = parser.parse_args()
+
+    data = args.image.read_bytes()
+    rgb = decode_image(data)
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads"
+    )
+    print(f"image: {args.image} ({rgb.shape[1]}x{rgb.shape[0]}), repeats {args.repeats}\n")
+    print(f"| {'stage':<38} | {'median ms':>10} | {'p90 ms':>10} | {'n':>3} |")
+    print(f"|{'-' * 40}|{'-' * 12}|{'-' * 12}|{'-' * 5}|")
+    report("decode (JPEG -> RGB)", timed(lambda: decode_image(data), args.repeats * 3))
+
+    local = None
+    for side in args.long_sides:
+        disk = build_local_extractor(
+            LocalExtractorConfig(long_side=side, max_keypoints=args.max_keypoints)
+        )
+        samples = timed(partial(disk.extract, rgb), args.repeats)
+        local = disk.extract(rgb)
+        report(f"DISK long side {side} ({local.count} kp)", samples)
+    assert local is not None
+    report(
+        "aggregate descriptors (D)",
+        timed(lambda: aggregate_descriptors(local.descriptors, local.scores), args.repeats * 3),
+    )
+
+    dims = {}
+    for name in ("mobilenetv2", "resnet18"):
+        try:
+            backbone = build_backbone(BackboneConfig(name=name))
+            label = f"backbone {name} 224x224"
+        except WeightsUnavailable:
+            # Same compute with random weights: the timing holds, the vectors mean nothing.
+            config = BackboneConfig(name=name)
+            backbone = GlobalBackbone(config, trunk=BACKBONES[name].make_trunk())
+            label = f"backbone {name} 224x224 (random init)"
+        dims[name] = backbone.dim
+        report(label, timed(partial(backbone.describe, rgb), args.repeats))
+
+    global_dim = dims.get("mobilenetv2", 1280)
+    heads = LoopNetHeads(
+        HeadsConfig(local_dim=128, global_dim=global_dim), class_labels=list(range(100))
+    ).eval()
+    d = local.descriptors[:1].mean(0, keepdims=True).astype(np.float32)
+    r = np.random.default_rng(0).normal(size=(1, global_dim)).astype(np.float32)
+
+    def heads_once() -> None:
+        embed_vectors(heads, d, r)
+        heads.predict_submap(torch.from_numpy(d), torch.from_numpy(r))
+
+    report("heads (embed + classify, 100 submaps)", timed(heads_once, args.repeats * 3))
+
+    rng = np.random.default_rng(1)
+    index = AtlasIndex(heads.config.fused_dim)
+    batch = 10_000
+    for start in range(0, args.index_size, batch):
+        n = min(batch, args.index_size - start)
+        v = rng.normal(size=(n, index.dim)).astype(np.float32)
+        index.add(
+            np.arange(start, start + n), v / np.linalg.norm(v, axis=1, keepdims=True), ["r"] * n
+        )
+    query = embed_vectors(heads, d, r)[0]
+    report(
+        f"search k=5, exact, {args.index_size} frames",
+        timed(lambda: index.search(query, 5), args.repeats * 3),
+    )
+
+    from service.ml.features import FrameFeatures
+    from service.storage import repository as repo
+    from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
+
+    features = FrameFeatures(
+        local,
+        aggregate_descriptors(local.descriptors, local.scores),
+        r[0],
+        (rgb.shape[1], rgb.shape[0]),
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        url = f"sqlite:///{tmp}/bench.sqlite3"
+        upgrade_database(url)
+        sessions = make_session_factory(make_engine(url))
+        with transaction(sessions) as session:
+            atlas = repo.create_atlas(session, name="bench", description="", feature_signature={})
+            submap = repo.create_submap(session, atlas=atlas, name="s")
+
+        def write() -> None:
+            with transaction(sessions) as session:
+                repo.add_frame(
+                    session,
+                    atlas=atlas,
+                    submap=submap,
+                    robot_id="r",
+                    timestamp=None,
+                    pose=None,
+                    intrinsics=None,
+                    features=features,
+                )
+
+        report(f"database write (SQLite WAL, {local.count} kp)", timed(write, args.repeats * 3))
+
+
+if __name__ == "__main__":
+    main()

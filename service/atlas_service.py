@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service import models_store
 from service.config import Settings
-from service.errors import Conflict, InvalidInput, NotReady
+from service.errors import Conflict, InvalidInput
 from service.geometry import Intrinsics, Pose
 from service.index import AtlasIndex
 from service.ml.features import FrameFeatures
@@ -267,19 +267,43 @@ class AtlasService:
         intrinsics: Intrinsics | None = None,
     ) -> Frame:
         """Store a frame, its features and its embedding; nothing is written if any step fails."""
-        validate_name("robot", robot_id)
-        if timestamp is not None and not np.isfinite(timestamp):
-            raise InvalidInput("timestamp must be a finite number of seconds")
+        self._validate_frame_fields(robot_id, timestamp)
         with self.sessions() as session:
             atlas = repo.get_atlas(session, name=atlas_name)
             self._check_signature(atlas)
             repo.get_submap(session, atlas=atlas, name=submap_name)
-            atlas_id = atlas.id
         features, _ = self.extract(image_bytes)
-        state = self.loaded(atlas_id)
-        embedding = self._embed(state.heads, features)
+        return self.ingest_features(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+
+    def ingest_features(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> Frame:
+        """Store a frame whose features are already extracted (by :meth:`extract`).
+
+        The rows are committed in one transaction; the embedding is then computed with the
+        atlas's *current* heads and added to its index, so a model swap in between cannot leave
+        the frame embedded by the wrong version.
+        """
+        self._validate_frame_fields(robot_id, timestamp)
         with transaction(self.sessions) as session:
             atlas = repo.get_atlas(session, name=atlas_name)
+            self._check_signature(atlas)
             submap = repo.get_submap(session, atlas=atlas, name=submap_name)
             frame = repo.add_frame(
                 session,
@@ -291,9 +315,16 @@ class AtlasService:
                 intrinsics=intrinsics,
                 features=features,
             )
-        state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+        state = self.loaded(frame.atlas_id)
+        state.index.add(np.array([frame.id]), self._embed(state.heads, features)[None], [robot_id])
         state.dirty = True
         return frame
+
+    @staticmethod
+    def _validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
+        validate_name("robot", robot_id)
+        if timestamp is not None and not np.isfinite(timestamp):
+            raise InvalidInput("timestamp must be a finite number of seconds")
 
     @staticmethod
     def _embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
@@ -305,18 +336,34 @@ class AtlasService:
         self, *, atlas_name: str, image_bytes: bytes, k: int = 5, robot_id: str | None = None
     ) -> QueryResult:
         """The frames of the atlas most similar to an image, and the loop-closure decision."""
-        if not 1 <= k <= self.settings.max_k:
-            raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
-        if robot_id is not None:
-            validate_name("robot", robot_id)
         total_start = time.perf_counter()
+        self._validate_query_fields(k, robot_id)
+        with self.sessions() as session:
+            self._check_signature(repo.get_atlas(session, name=atlas_name))
+        features, decode_ms = self.extract(image_bytes)
+        result = self.query_features(
+            atlas_name=atlas_name, features=features, k=k, robot_id=robot_id
+        )
+        result.timings_ms = {
+            "decode": round(decode_ms, 3),
+            **{name: round(ms, 3) for name, ms in features.timings_ms.items()},
+            **result.timings_ms,
+            "total": round((time.perf_counter() - total_start) * 1000.0, 3),
+        }
+        return result
+
+    def query_features(
+        self, *, atlas_name: str, features: FrameFeatures, k: int = 5, robot_id: str | None = None
+    ) -> QueryResult:
+        """Search with already extracted features (by :meth:`extract`); timings cover the
+        heads and the search only."""
+        self._validate_query_fields(k, robot_id)
         with self.sessions() as session:
             atlas = repo.get_atlas(session, name=atlas_name)
             self._check_signature(atlas)
             atlas_id = atlas.id
-        features, decode_ms = self.extract(image_bytes)
         state = self.loaded(atlas_id)
-        timings = {"decode": decode_ms, **features.timings_ms}
+        timings: dict[str, float] = {}
 
         start = time.perf_counter()
         embedding = self._embed(state.heads, features)
@@ -350,7 +397,6 @@ class AtlasService:
             guess = SubmapGuess(True, names.get(prediction.submap_id), prediction.probability)
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
-        timings["total"] = (time.perf_counter() - total_start) * 1000.0
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
@@ -363,6 +409,8 @@ class AtlasService:
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
         )
 
-    def ensure_ready(self) -> None:
-        if self.pipeline is None:
-            raise NotReady("the model is still loading")
+    def _validate_query_fields(self, k: int, robot_id: str | None) -> None:
+        if not 1 <= k <= self.settings.max_k:
+            raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
+        if robot_id is not None:
+            validate_name("robot", robot_id)

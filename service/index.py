@@ -42,16 +42,24 @@ class AtlasIndex:
         with self._lock:
             return faiss.vector_to_array(self._index.id_map).astype(np.int64)
 
-    def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> None:
-        """Add ``N`` unit ``vectors`` under frame ``ids`` taken by ``robots``."""
-        if len(ids) == 0:
-            return
+    def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> int:
+        """Add ``N`` unit ``vectors`` under frame ``ids`` taken by ``robots``.
+
+        Idempotent: ids already held are skipped, so a frame caught up by reconciliation and
+        added by its own ingest call is indexed once. Returns how many were added.
+        """
         vectors = np.ascontiguousarray(vectors, dtype=np.float32)
         if vectors.shape != (len(ids), self.dim):
             raise ValueError(f"expected {len(ids)} x {self.dim} vectors, got {vectors.shape}")
         with self._lock:
-            self._index.add_with_ids(vectors, np.asarray(ids, dtype=np.int64))
-            self._robot_of.update(zip((int(i) for i in ids), robots, strict=True))
+            new = np.array([int(i) not in self._robot_of for i in ids], dtype=bool)
+            if not new.any():
+                return 0
+            new_ids = np.asarray(ids, dtype=np.int64)[new]
+            self._index.add_with_ids(vectors[new], new_ids)
+            kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
+            self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
+            return int(new.sum())
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
         """Attach robot ids to frames loaded from a file (the file holds vectors only)."""

@@ -48,3 +48,12 @@ def test_save_and_load(tmp_path: Path) -> None:
     loaded = AtlasIndex.load(tmp_path / "a.faiss", 8)
     assert sorted(loaded.ids().tolist()) == list(range(10))
     assert loaded.search(data[4], 1)[0].frame_id == 4
+
+
+def test_adding_an_id_twice_indexes_it_once() -> None:
+    index = AtlasIndex(8)
+    data = vectors(3, 8, 3)
+    assert index.add(np.arange(3), data, ["r"] * 3) == 3
+    assert index.add(np.array([2, 3]), vectors(2, 8, 4), ["r", "s"]) == 1
+    assert index.size == 4
+    assert index.search(data[2], 1)[0].similarity > 0.9999  # the first vector of id 2 kept

@@ -4,13 +4,15 @@ Fusion follows the paper, F = alpha * D + (1 - alpha) * R, with D (the aggregate
 descriptor) and R (the backbone vector) each brought into one fused space by a linear map.
 
 Before any training the embedding is already meaningful: both maps start as block identities
-(D into the first ``local_dim`` coordinates, R into the rest), and the similarity head is a
-residual MLP whose last layer starts at zero. So an untrained model computes
+(D into the first ``local_dim`` coordinates, R into the rest, ``embed_dim`` unset), and the
+similarity head is a residual MLP whose last layer starts at zero. So an untrained model computes
 
     cos(E1, E2) = (alpha^2 cos(D1, D2) + (1 - alpha)^2 cos(R1, R2)) / (alpha^2 + (1 - alpha)^2)
 
-for frames with keypoints: a fixed blend of the two pretrained branches' cosines. Training
-(retraining jobs) moves away from that starting point; it never starts from noise.
+for frames with keypoints: a fixed blend of the two pretrained branches' cosines. Trained
+versions use a compact fused space (``embed_dim``, e.g. 256) whose maps start from a PCA of the
+atlas's own stored features (see :mod:`service.ml.training`), so training never starts from
+noise either, and re-embedding a large atlas stays cheap.
 """
 
 from __future__ import annotations
@@ -32,33 +34,41 @@ class HeadsConfig:
     global_dim: int
     alpha: float = 0.7
     hidden_dim: int = 256
+    # None: the fused space is D and R side by side (block identities, the untrained model).
+    embed_dim: int | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must lie in [0, 1], got {self.alpha}")
+        if self.embed_dim is not None and self.embed_dim < 2:
+            raise ValueError(f"embed_dim must be at least 2, got {self.embed_dim}")
 
     @property
     def fused_dim(self) -> int:
-        return self.local_dim + self.global_dim
+        return self.embed_dim or self.local_dim + self.global_dim
 
 
 class Fusion(nn.Module):
-    """``F = alpha * P_D(D) + (1 - alpha) * P_R(R)``; ``B x local_dim, B x global_dim -> B x fused``."""
+    """``F = alpha * P_D(D) + (1 - alpha) * P_R(R) + b``: ``B x local, B x global -> B x fused``.
+
+    Initialised as block identities with ``b = 0`` (D and R side by side); a retraining job
+    re-initialises ``P_D``, ``P_R`` and ``b`` from a PCA of the atlas before training.
+    """
 
     def __init__(self, config: HeadsConfig) -> None:
         super().__init__()
         self.alpha = config.alpha
         self.project_local = nn.Linear(config.local_dim, config.fused_dim, bias=False)
         self.project_global = nn.Linear(config.global_dim, config.fused_dim, bias=False)
+        self.bias = nn.Parameter(torch.zeros(config.fused_dim))
         with torch.no_grad():
-            self.project_local.weight.copy_(torch.eye(config.fused_dim, config.local_dim))
-            self.project_global.weight.zero_()
-            self.project_global.weight[config.local_dim :].copy_(torch.eye(config.global_dim))
+            block = torch.eye(config.local_dim + config.global_dim)[: config.fused_dim]
+            self.project_local.weight.copy_(block[:, : config.local_dim])
+            self.project_global.weight.copy_(block[:, config.local_dim :])
 
     def forward(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
-        return self.alpha * self.project_local(local) + (1 - self.alpha) * self.project_global(
-            global_
-        )
+        mixed = self.alpha * self.project_local(local)
+        return mixed + (1 - self.alpha) * self.project_global(global_) + self.bias
 
 
 class SimilarityHead(nn.Module):

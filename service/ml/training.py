@@ -1,0 +1,371 @@
+"""Few-shot retraining of LoopNet's heads from stored per-frame features (never from images).
+
+Both heads learn together on K frames ("shots") per submap:
+
+- the classification head with cross-entropy over the atlas's submaps;
+- the similarity head with a contrastive loss of margin ``m`` (Hadsell et al. 2006) on the
+  unit embeddings: pairs from one submap are pulled together, pairs from different submaps
+  pushed at least ``m`` apart (Euclidean distance on the unit sphere, so ``m`` = 1 means
+  cosine <= 0.5).
+
+Fusion starts from a PCA of the atlas's stored features (centred, ``embed_dim`` components), the
+classifier from the shots' per-submap mean embeddings (prototypes), and the similarity head as a
+pass-through. The frames that are not shots are the validation set: after every epoch their
+classifier and nearest-shot accuracies are measured (their loss breaks ties), and the best
+epoch's weights are kept (epoch 0, the initialisation, included), so training never leaves
+validation accuracy worse than it found it.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
+
+TRAINABLE_PARTS = ("fusion", "similarity", "classifier")
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Parameters of one retraining run (the API's job parameters)."""
+
+    shots: int = 5
+    epochs: int = 100
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-4
+    classification_weight: float = 1.0
+    contrastive_weight: float = 1.0
+    margin: float = 1.0
+    embed_dim: int = 256
+    train: tuple[str, ...] = TRAINABLE_PARTS
+    noise_std: float = 0.01
+    feature_dropout: float = 0.1
+    patience: int = 15
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = set(self.train) - set(TRAINABLE_PARTS)
+        if unknown or not self.train:
+            raise ValueError(
+                f"train must name some of {list(TRAINABLE_PARTS)}, got {list(self.train)}"
+            )
+        if self.shots < 1 or self.epochs < 1 or self.embed_dim < 2:
+            raise ValueError("shots and epochs must be >= 1 and embed_dim >= 2")
+        if self.learning_rate <= 0 or self.margin <= 0:
+            raise ValueError("learning_rate and margin must be positive")
+        if self.classification_weight < 0 or self.contrastive_weight < 0:
+            raise ValueError("loss weights must be >= 0")
+        if self.classification_weight == 0 and self.contrastive_weight == 0:
+            raise ValueError("at least one loss weight must be positive")
+
+
+@dataclass
+class TrainingData:
+    """Stored vectors of an atlas's frames: ``N x D`` local, ``N x C`` global, submap labels."""
+
+    local: np.ndarray
+    global_: np.ndarray
+    submaps: np.ndarray
+    frame_ids: np.ndarray
+
+
+@dataclass
+class TrainingResult:
+    heads: LoopNetHeads
+    metrics: dict[str, Any]
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+class TrainingCancelled(Exception):
+    """Raised when ``should_stop`` asks a run to stop; nothing is saved."""
+
+
+ProgressCallback = Callable[[float, str], None]
+
+
+def split_shots(submaps: np.ndarray, shots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of K shots per submap (spread evenly over its frames) and of the rest.
+
+    Frames are taken in stored order (ingest order), so the shots cover each submap's span.
+    """
+    train: list[int] = []
+    for submap in np.unique(submaps):
+        members = np.flatnonzero(submaps == submap)
+        if len(members) <= shots:
+            train.extend(members.tolist())
+        else:
+            picks = np.linspace(0, len(members) - 1, shots).round().astype(int)
+            train.extend(members[np.unique(picks)].tolist())
+    train_idx = np.array(sorted(train), dtype=np.int64)
+    val_idx = np.setdiff1d(np.arange(len(submaps)), train_idx)
+    return train_idx, val_idx
+
+
+PCA_SAMPLE = 20_000  # frames that estimate the PCA; more changes little and costs O(n d^2)
+
+
+def pca_init(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, seed: int = 0) -> None:
+    """Set the fusion maps to the top principal directions of ``[alpha*D, (1-alpha)*R]``.
+
+    Centring removes the component every frame shares (aggregated DISK descriptors of all
+    frames are close to one another), which the block-identity start keeps. Directions come
+    from a randomised truncated SVD (``torch.svd_lowrank``) of at most ``PCA_SAMPLE`` frames.
+    """
+    config = heads.config
+    alpha = config.alpha
+    if len(local) > PCA_SAMPLE:
+        pick = np.random.default_rng(seed).choice(len(local), PCA_SAMPLE, replace=False)
+        local, global_ = local[pick], global_[pick]
+    stacked = torch.from_numpy(
+        np.concatenate([alpha * local, (1 - alpha) * global_], axis=1).astype(np.float32)
+    )
+    mean = stacked.mean(dim=0)
+    rows = min(config.fused_dim, *stacked.shape)
+    torch.manual_seed(seed)  # svd_lowrank starts from a random subspace
+    _, singular_values, v = torch.svd_lowrank(stacked - mean, q=rows, niter=4)
+    rank = int((singular_values > 1e-6 * singular_values.max().clamp_min(1e-30)).sum())
+    basis = np.zeros((config.fused_dim, stacked.shape[1]))
+    basis[:rank] = v[:, :rank].T.numpy()
+    basis_t = torch.from_numpy(basis).float()
+    with torch.no_grad():
+        fusion = heads.fusion
+        fusion.project_local.weight.copy_(basis_t[:, : config.local_dim])
+        fusion.project_global.weight.copy_(basis_t[:, config.local_dim :])
+        fusion.bias.copy_(-(basis_t @ mean))
+
+
+def contrastive_loss(embeddings: torch.Tensor, labels: torch.Tensor, margin: float) -> torch.Tensor:
+    """Mean of ``d^2`` over same-label pairs plus mean of ``max(0, m - d)^2`` over the others."""
+    distances = torch.cdist(embeddings, embeddings).clamp_min(1e-9)
+    same = labels[:, None] == labels[None, :]
+    off_diagonal = ~torch.eye(len(labels), dtype=torch.bool)
+    positives, negatives = same & off_diagonal, ~same
+    loss = embeddings.new_zeros(())
+    if positives.any():
+        loss = loss + distances[positives].pow(2).mean()
+    if negatives.any():
+        loss = loss + F.relu(margin - distances[negatives]).pow(2).mean()
+    return loss
+
+
+def _augment(x: torch.Tensor, config: TrainingConfig, generator: torch.Generator) -> torch.Tensor:
+    """Noise and feature dropout on stored (unit) vectors, then back to unit length."""
+    if config.noise_std > 0:
+        x = x + config.noise_std * torch.randn(x.shape, generator=generator)
+    if config.feature_dropout > 0:
+        keep = torch.rand(x.shape, generator=generator) >= config.feature_dropout
+        x = x * keep
+    return F.normalize(x, dim=-1)
+
+
+def _losses(
+    heads: LoopNetHeads,
+    local: torch.Tensor,
+    global_: torch.Tensor,
+    targets: torch.Tensor,
+    config: TrainingConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    fused = heads.fusion(local, global_)
+    assert heads.classifier is not None
+    classification = F.cross_entropy(heads.classifier(fused), targets)
+    contrastive = contrastive_loss(heads.similarity(fused), targets, config.margin)
+    return classification, contrastive
+
+
+VALIDATION_LOSS_SAMPLE = 1024  # validation frames in the (quadratic) contrastive term
+
+
+@torch.no_grad()
+def evaluate(
+    heads: LoopNetHeads,
+    data: TrainingData,
+    reference_idx: np.ndarray,
+    query_idx: np.ndarray,
+    config: TrainingConfig | None = None,
+) -> dict[str, float]:
+    """Accuracies of the ``query_idx`` frames, from one forward pass over the frames involved.
+
+    ``retrieval_accuracy``: the nearest reference frame (by embedding) is in the right submap;
+    ``classifier_accuracy``: the classifier names the right submap. With ``config``, also the
+    validation ``loss`` (weighted cross-entropy + contrastive on a fixed sample of frames).
+    """
+    if len(query_idx) == 0:
+        return {}
+    involved = np.concatenate([reference_idx, query_idx])
+    fused = heads.fusion(
+        torch.from_numpy(data.local[involved]), torch.from_numpy(data.global_[involved])
+    )
+    embeddings = heads.similarity(fused)
+    references, queries = embeddings[: len(reference_idx)], embeddings[len(reference_idx) :]
+    nearest = reference_idx[(queries @ references.T).argmax(dim=1).numpy()]
+    truth = data.submaps[query_idx]
+    metrics = {"retrieval_accuracy": float(np.mean(data.submaps[nearest] == truth))}
+    if heads.classifier is None:
+        return metrics
+    logits = heads.classifier(fused[len(reference_idx) :])
+    labels = np.asarray(heads.class_labels)
+    metrics["classifier_accuracy"] = float(np.mean(labels[logits.argmax(dim=1).numpy()] == truth))
+    if config is not None:
+        index_of = {label: i for i, label in enumerate(heads.class_labels)}
+        targets = torch.tensor([index_of[int(t)] for t in truth], dtype=torch.long)
+        sample = slice(0, VALIDATION_LOSS_SAMPLE)
+        loss = config.classification_weight * F.cross_entropy(logits, targets)
+        loss += config.contrastive_weight * contrastive_loss(
+            queries[sample], targets[sample], config.margin
+        )
+        metrics["loss"] = loss.item()
+    return metrics
+
+
+def train_heads(
+    data: TrainingData,
+    base: HeadsConfig,
+    config: TrainingConfig,
+    *,
+    progress: ProgressCallback | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> TrainingResult:
+    """Train new heads for an atlas from its stored vectors.
+
+    Args:
+        data: every frame of the atlas (D, R, submap ids).
+        base: dimensions and alpha of the untrained model; ``config.embed_dim`` sets the
+            trained model's fused size.
+        progress: called with (fraction 0..1, message) once per epoch.
+        should_stop: polled once per epoch; True raises :class:`TrainingCancelled`.
+    """
+    started = time.perf_counter()
+    labels = sorted(int(s) for s in np.unique(data.submaps))
+    if len(labels) < 2:
+        raise ValueError("retraining needs at least two submaps with frames")
+    torch.manual_seed(config.seed)
+    generator = torch.Generator().manual_seed(config.seed)
+    heads_config = HeadsConfig(
+        local_dim=base.local_dim,
+        global_dim=base.global_dim,
+        alpha=base.alpha,
+        hidden_dim=base.hidden_dim,
+        embed_dim=config.embed_dim,
+    )
+    heads = LoopNetHeads(heads_config, class_labels=labels)
+    pca_init(heads, data.local, data.global_, seed=config.seed)
+
+    train_idx, val_idx = split_shots(data.submaps, config.shots)
+    label_index = {label: i for i, label in enumerate(labels)}
+    targets = torch.tensor([label_index[int(s)] for s in data.submaps], dtype=torch.long)
+    local = torch.from_numpy(data.local)
+    global_ = torch.from_numpy(data.global_)
+    _init_prototypes(heads, local[train_idx], global_[train_idx], targets[train_idx], len(labels))
+    before = evaluate(heads, data, train_idx, val_idx)
+
+    parts = {
+        "fusion": heads.fusion,
+        "similarity": heads.similarity,
+        "classifier": heads.classifier,
+    }
+    for name, module in parts.items():
+        assert module is not None
+        module.requires_grad_(name in config.train)
+    trainable = [p for p in heads.parameters() if p.requires_grad]
+    optimiser = torch.optim.AdamW(
+        trainable, lr=config.learning_rate, weight_decay=config.weight_decay
+    )
+
+    def validation_score() -> tuple[float, float]:
+        """(mean validation accuracy, -validation loss): accuracy first, loss breaks ties."""
+        metrics = evaluate(heads, data, train_idx, val_idx, config)
+        loss = metrics.pop("loss")
+        return float(np.mean(list(metrics.values()))), -loss
+
+    history: list[dict[str, float]] = []
+    best_state = copy.deepcopy(heads.state_dict())
+    best_score = validation_score() if len(val_idx) else (0.0, 0.0)
+    since_best, epochs_run, best_epoch = 0, 0, 0
+    for epoch in range(config.epochs):
+        if should_stop is not None and should_stop():
+            raise TrainingCancelled(f"cancelled at epoch {epoch}")
+        heads.train()
+        optimiser.zero_grad()
+        classification, contrastive = _losses(
+            heads,
+            _augment(local[train_idx], config, generator),
+            _augment(global_[train_idx], config, generator),
+            targets[train_idx],
+            config,
+        )
+        loss = config.classification_weight * classification
+        loss = loss + config.contrastive_weight * contrastive
+        loss.backward()
+        optimiser.step()
+        heads.eval()
+        epochs_run = epoch + 1
+        record = {
+            "epoch": epochs_run,
+            "loss": loss.item(),
+            "classification_loss": classification.item(),
+            "contrastive_loss": contrastive.item(),
+        }
+        if len(val_idx):
+            score = validation_score()
+            record.update({"val_accuracy": score[0], "val_loss": -score[1]})
+            accuracy_gain = score[0] - best_score[0]
+            if accuracy_gain > 1e-9 or (
+                abs(accuracy_gain) <= 1e-9 and score[1] > best_score[1] + 1e-6
+            ):
+                best_score, since_best, best_epoch = score, 0, epochs_run
+                best_state = copy.deepcopy(heads.state_dict())
+            else:
+                since_best += 1
+        else:
+            best_state, best_epoch = copy.deepcopy(heads.state_dict()), epochs_run
+        history.append(record)
+        if progress is not None:
+            progress(epochs_run / config.epochs, f"epoch {epochs_run}: loss {record['loss']:.4f}")
+        if len(val_idx) and since_best >= config.patience:
+            break
+
+    heads.load_state_dict(best_state)
+    heads.eval()
+    after = evaluate(heads, data, train_idx, val_idx)
+    metrics: dict[str, Any] = {
+        "submaps": len(labels),
+        "frames": len(data.submaps),
+        "shots": int(len(train_idx)),
+        "validation_frames": int(len(val_idx)),
+        "epochs_run": epochs_run,
+        "best_epoch": best_epoch,
+        "early_stopped": epochs_run < config.epochs,
+        "train_seconds": round(time.perf_counter() - started, 3),
+        "first_loss": history[0]["loss"],
+        "final_loss": history[-1]["loss"],
+        "validation_before": before,
+        "validation_after": after,
+        "config": asdict(config),
+    }
+    return TrainingResult(heads=heads, metrics=metrics, history=history)
+
+
+def _init_prototypes(
+    heads: LoopNetHeads,
+    local: torch.Tensor,
+    global_: torch.Tensor,
+    targets: torch.Tensor,
+    classes: int,
+) -> None:
+    """Start each class weight at its shots' mean normalised fused feature (scaled)."""
+    classifier: ClassificationHead | None = heads.classifier
+    assert classifier is not None
+    with torch.no_grad():
+        fused = F.normalize(heads.fusion(local, global_), dim=-1)
+        prototypes = torch.zeros(classes, fused.shape[1])
+        prototypes.index_add_(0, targets, fused)
+        classifier.linear.weight.copy_(10.0 * F.normalize(prototypes, dim=-1))
+        classifier.linear.bias.zero_()

@@ -1,0 +1,131 @@
+"""Few-shot training: both heads learn, losses fall, early stopping, shots, cancellation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from service.ml.heads import HeadsConfig
+from service.ml.training import (
+    TrainingCancelled,
+    TrainingConfig,
+    TrainingData,
+    contrastive_loss,
+    evaluate,
+    split_shots,
+    train_heads,
+)
+
+BASE = HeadsConfig(local_dim=16, global_dim=24, alpha=0.7)
+
+
+def clustered(
+    submaps: int = 6, per_submap: int = 8, noise: float = 0.6, seed: int = 0
+) -> TrainingData:
+    """Frames whose stored vectors scatter around one centre per submap."""
+    rng = np.random.default_rng(seed)
+    centres_d = rng.normal(size=(submaps, 16))
+    centres_r = rng.normal(size=(submaps, 24))
+    labels = np.repeat(np.arange(100, 100 + submaps), per_submap)
+    index = labels - 100
+    local = centres_d[index] + noise * rng.normal(size=(len(labels), 16))
+    global_ = centres_r[index] + noise * rng.normal(size=(len(labels), 24))
+
+    def unit(x: np.ndarray) -> np.ndarray:
+        return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+    return TrainingData(unit(local), unit(global_), labels, np.arange(len(labels)))
+
+
+def test_split_takes_k_shots_spread_over_each_submap() -> None:
+    submaps = np.array([1] * 10 + [2] * 3)
+    train, val = split_shots(submaps, 3)
+    assert train.tolist() == [0, 4, 9, 10, 11, 12]
+    assert sorted(train.tolist() + val.tolist()) == list(range(13))
+
+
+def test_contrastive_loss_known_values() -> None:
+    e = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    # positives (0,1) at distance 0; negatives at sqrt(2) > margin 1: zero loss
+    assert contrastive_loss(e, torch.tensor([0, 0, 1]), margin=1.0).item() == pytest.approx(
+        0.0, abs=1e-6
+    )
+    # all different labels, margin 2: each negative pair costs (2 - d)^2
+    d01, d02 = 0.0, np.sqrt(2.0)
+    expected = np.mean([(2 - d01) ** 2] * 2 + [(2 - d02) ** 2] * 4)
+    assert contrastive_loss(e, torch.tensor([0, 1, 2]), margin=2.0).item() == pytest.approx(
+        expected, rel=1e-4
+    )
+
+
+def test_both_losses_fall_and_both_heads_change() -> None:
+    data = clustered()
+    config = TrainingConfig(shots=4, epochs=60, embed_dim=16, patience=1000)
+    result = train_heads(data, BASE, config)
+    history = result.history
+    assert history[-1]["classification_loss"] < 0.5 * history[0]["classification_loss"]
+    assert history[-1]["contrastive_loss"] < 0.8 * history[0]["contrastive_loss"]
+    heads = result.heads
+    assert heads.has_classifier and heads.class_labels == list(range(100, 106))
+    last = heads.similarity.mlp[2]
+    assert isinstance(last, torch.nn.Linear) and last.weight.abs().sum() > 0  # learned, not zero
+    assert heads.config.fused_dim == 16
+
+
+def test_trained_model_separates_held_out_frames() -> None:
+    data = clustered(noise=0.9)
+    result = train_heads(data, BASE, TrainingConfig(shots=3, epochs=80, embed_dim=16))
+    after = result.metrics["validation_after"]
+    before = result.metrics["validation_before"]
+    assert after["classifier_accuracy"] >= before["classifier_accuracy"]
+    assert after["classifier_accuracy"] > 0.8 and after["retrieval_accuracy"] > 0.8
+    assert result.metrics["best_epoch"] <= result.metrics["epochs_run"]
+
+
+def test_frozen_parts_keep_their_initial_weights() -> None:
+    data = clustered()
+    result = train_heads(
+        data, BASE, TrainingConfig(shots=4, epochs=10, embed_dim=16, train=("classifier",))
+    )
+    last = result.heads.similarity.mlp[2]
+    assert isinstance(last, torch.nn.Linear) and last.weight.abs().sum() == 0
+
+
+def test_embeddings_stay_unit_and_classifier_gives_probabilities() -> None:
+    data = clustered()
+    heads = train_heads(data, BASE, TrainingConfig(shots=4, epochs=5, embed_dim=16)).heads
+    local, global_ = torch.from_numpy(data.local[:3]), torch.from_numpy(data.global_[:3])
+    with torch.no_grad():
+        assert torch.allclose(heads.embed(local, global_).norm(dim=-1), torch.ones(3), atol=1e-5)
+    prediction = heads.predict_submap(local[:1], global_[:1])
+    assert prediction is not None and prediction.submap_id in range(100, 106)
+
+
+def test_cancellation_stops_training() -> None:
+    calls = []
+
+    def stop() -> bool:
+        calls.append(1)
+        return len(calls) > 3
+
+    with pytest.raises(TrainingCancelled):
+        train_heads(clustered(), BASE, TrainingConfig(epochs=100, embed_dim=16), should_stop=stop)
+
+
+def test_needs_two_submaps_and_valid_config() -> None:
+    data = clustered(submaps=1)
+    with pytest.raises(ValueError, match="two submaps"):
+        train_heads(data, BASE, TrainingConfig(embed_dim=16))
+    with pytest.raises(ValueError, match="train must name"):
+        TrainingConfig(train=("backbone",))
+    with pytest.raises(ValueError, match="loss weight"):
+        TrainingConfig(classification_weight=0, contrastive_weight=0)
+
+
+def test_evaluate_without_validation_frames_is_empty() -> None:
+    data = clustered(per_submap=2)
+    heads = train_heads(data, BASE, TrainingConfig(shots=2, epochs=3, embed_dim=16)).heads
+    assert evaluate(heads, data, np.arange(len(data.submaps)), np.array([], dtype=np.int64)) == {}
+    assert F.normalize(torch.ones(2), dim=0).norm() == pytest.approx(1.0)

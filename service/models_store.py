@@ -1,4 +1,4 @@
-"""Load and save the heads of a model version (the weights file beside the database row)."""
+"""Where a model version's files live, and loading its heads."""
 
 from __future__ import annotations
 
@@ -13,6 +13,16 @@ from service.storage.models import ModelVersion
 def initial_version_config(heads_config: HeadsConfig) -> dict[str, Any]:
     """The config row of an atlas's untrained first version (its heads rebuild from it)."""
     return {"heads": asdict(heads_config), "trained": False}
+
+
+def index_file(index_dir: Path, atlas_id: int, version: int) -> Path:
+    """The FAISS file of an atlas embedded by one model version."""
+    return index_dir / f"atlas-{atlas_id}-v{version}.faiss"
+
+
+def weights_file(models_dir: Path, atlas_id: int, version: int) -> Path:
+    """The heads' weights of a trained version (relative paths in the row are under models_dir)."""
+    return models_dir / f"atlas-{atlas_id}" / f"v{version}.pt"
 
 
 def load_heads(version: ModelVersion, models_dir: Path) -> LoopNetHeads:

@@ -75,3 +75,23 @@ def iter_stored_vectors(
         local = np.stack([np.frombuffer(r.local_vector, "<f4") for r in rows])
         global_ = np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows])
         yield ids, local, global_, submaps, robots
+
+
+def load_stored_vectors(session: Session, atlas_id: int) -> StoredVectors:
+    """All frames' (ids, D, R, submap ids, robot ids) of an atlas, concatenated."""
+    batches = list(iter_stored_vectors(session, atlas_id))
+    if not batches:
+        return (
+            np.zeros(0, np.int64),
+            np.zeros((0, 0), np.float32),
+            np.zeros((0, 0), np.float32),
+            np.zeros(0, np.int64),
+            [],
+        )
+    return (
+        np.concatenate([b[0] for b in batches]),
+        np.concatenate([b[1] for b in batches]),
+        np.concatenate([b[2] for b in batches]),
+        np.concatenate([b[3] for b in batches]),
+        [robot for b in batches for robot in b[4]],
+    )

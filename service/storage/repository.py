@@ -53,6 +53,12 @@ def count_submaps(session: Session, *, atlas_id: int) -> int:
     )
 
 
+def count_populated_submaps(session: Session, *, atlas_id: int) -> int:
+    """Submaps of the atlas that hold at least one frame."""
+    query = select(func.count(func.distinct(Frame.submap_id))).where(Frame.atlas_id == atlas_id)
+    return int(session.scalar(query) or 0)
+
+
 def create_submap(session: Session, *, atlas: Atlas, name: str) -> Submap:
     exists = select(Submap.id).where(Submap.atlas_id == atlas.id, Submap.name == name)
     if session.scalar(exists) is not None:
@@ -180,7 +186,7 @@ def activate_model_version(session: Session, *, atlas_id: int, version: int) -> 
     versions = list(session.scalars(select(ModelVersion).where(ModelVersion.atlas_id == atlas_id)))
     chosen = next((v for v in versions if v.version == version), None)
     if chosen is None:
-        raise NotFound(f"model version {version} does not exist")
+        raise NotFound(f"model version {version} does not exist for this atlas")
     for v in versions:
         v.is_active = v.version == version
     session.flush()

@@ -1,0 +1,105 @@
+"""Job rows: the API's view of queued work, written by the API and the worker alike."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from service.errors import Conflict, NotFound
+from service.storage.models import Job, utcnow
+
+ACTIVE = ("queued", "running")
+FINISHED = ("succeeded", "failed", "cancelled")
+
+
+def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, Any]) -> Job:
+    """A queued job; one retraining per atlas at a time (a second gets 409)."""
+    busy = session.scalar(
+        select(Job).where(Job.atlas_id == atlas_id, Job.kind == kind, Job.status.in_(ACTIVE))
+    )
+    if busy is not None:
+        raise Conflict(f"a {kind} job for this atlas is already {busy.status} (job {busy.id})")
+    job = Job(
+        atlas_id=atlas_id,
+        kind=kind,
+        status="queued",
+        progress=0.0,
+        message="queued",
+        params=params,
+        metrics={},
+        cancel_requested=False,
+    )
+    session.add(job)
+    session.flush()
+    return job
+
+
+def get_job(session: Session, *, job_id: int, atlas_id: int | None = None) -> Job:
+    job = session.get(Job, job_id)
+    if job is None or (atlas_id is not None and job.atlas_id != atlas_id):
+        raise NotFound(f"job {job_id} does not exist")
+    return job
+
+
+def list_jobs(session: Session, *, atlas_id: int, limit: int = 100) -> list[Job]:
+    query = select(Job).where(Job.atlas_id == atlas_id).order_by(Job.id.desc()).limit(limit)
+    return list(session.scalars(query))
+
+
+def start_job(session: Session, *, job_id: int) -> Job | None:
+    """Mark a queued job running; None if it was cancelled (or already taken) meanwhile."""
+    job = session.get(Job, job_id, with_for_update=True)
+    if job is None or job.status != "queued":
+        return None
+    if job.cancel_requested:
+        finish_job(session, job=job, status="cancelled", message="cancelled before it started")
+        return None
+    job.status, job.started_at, job.updated_at = "running", utcnow(), utcnow()
+    job.message = "started"
+    return job
+
+
+def report_progress(session: Session, *, job_id: int, progress: float, message: str) -> bool:
+    """Record progress (0..100); returns whether cancellation was requested."""
+    job = session.get(Job, job_id)
+    if job is None:
+        return True
+    job.progress = round(max(0.0, min(100.0, progress)), 1)
+    job.message = message[:500]
+    job.updated_at = utcnow()
+    return job.cancel_requested
+
+
+def finish_job(
+    session: Session,
+    *,
+    job: Job,
+    status: str,
+    message: str,
+    metrics: dict[str, Any] | None = None,
+    error: str | None = None,
+    model_version: int | None = None,
+) -> None:
+    assert status in FINISHED, status
+    job.status, job.message, job.error = status, message[:500], error[:4000] if error else None
+    if status == "succeeded":
+        job.progress = 100.0
+    if metrics is not None:
+        job.metrics = metrics
+    job.model_version = model_version
+    job.finished_at = job.updated_at = utcnow()
+
+
+def request_cancel(session: Session, *, job: Job) -> Job:
+    """Cancel a queued job at once; ask a running one to stop at its next checkpoint."""
+    if job.status in FINISHED:
+        raise Conflict(f"job {job.id} has already {job.status}")
+    job.cancel_requested = True
+    job.updated_at = utcnow()
+    if job.status == "queued":
+        finish_job(session, job=job, status="cancelled", message="cancelled before it started")
+    else:
+        job.message = "cancellation requested"
+    return job

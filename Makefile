@@ -28,8 +28,8 @@ test: install
 	LOOPNET_SHARED_DIR="$(SHARED)" $(BIN)/python -m pytest
 
 lint: install
-	$(BIN)/ruff check service migrations tests benchmarks
-	$(BIN)/ruff format --check service migrations tests benchmarks
+	$(BIN)/ruff check service workers migrations tests benchmarks
+	$(BIN)/ruff format --check service workers migrations tests benchmarks
 
 bench: weights
 	$(BIN)/python benchmarks/stage_latency.py --image "$(SHARED)/data/gardenspoint_first10/query/0.jpg"

@@ -23,16 +23,16 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service import models_store
 from service.config import Settings
-from service.errors import Conflict, InvalidInput
+from service.errors import Conflict, InvalidInput, NotFound
 from service.geometry import Intrinsics, Pose
 from service.index import AtlasIndex
+from service.index_builder import add_stored_frames
 from service.ml.features import FrameFeatures
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.feature_store import iter_stored_vectors
 from service.storage.models import Atlas, Frame, ModelVersion
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,7 @@ class LoadedAtlas:
     heads: LoopNetHeads
     index: AtlasIndex
     dirty: bool = False
+    checked_at: float = field(default_factory=time.monotonic)
 
 
 @dataclass
@@ -100,6 +101,9 @@ class AtlasService:
         self.pipeline = pipeline
         self._loaded: dict[int, LoadedAtlas] = {}
         self._loaded_lock = threading.Lock()
+        # Per atlas: held while its state is swapped and while a new frame enters its index,
+        # so a frame committed around a swap always ends up in the index that is served.
+        self._atlas_locks: dict[int, threading.RLock] = {}
         # One frame through the CNNs at a time: torch already uses every core per frame.
         self._inference_lock = threading.Lock()
 
@@ -158,17 +162,60 @@ class AtlasService:
         for atlas_id in atlas_ids:
             self.loaded(atlas_id)
 
+    def _atlas_lock(self, atlas_id: int) -> threading.RLock:
+        with self._loaded_lock:
+            return self._atlas_locks.setdefault(atlas_id, threading.RLock())
+
     def loaded(self, atlas_id: int) -> LoadedAtlas:
-        """The in-memory state of an atlas, loading and reconciling it on first use."""
+        """The in-memory state of an atlas: loaded on first use, and swapped for the new one
+        when another process (a retraining worker, an operator's rollback) has activated another
+        model version. Queries in flight keep the state they started with."""
         with self._loaded_lock:
             state = self._loaded.get(atlas_id)
-            if state is None:
-                state = self._load(atlas_id)
-                self._loaded[atlas_id] = state
+        if state is not None and not self._active_version_changed(state):
             return state
+        with self._atlas_lock(atlas_id):
+            with self._loaded_lock:
+                current = self._loaded.get(atlas_id)
+            if current is not None and current is not state:
+                return current  # another thread swapped meanwhile
+            new = self._load(atlas_id)
+            if state is not None:
+                log.info(
+                    "atlas %d: now serving model version %d (was %d)",
+                    atlas_id,
+                    new.model_version,
+                    state.model_version,
+                )
+                if state.dirty:
+                    self.save_index(state)  # keep the old version's file current for rollback
+            with self._loaded_lock:
+                self._loaded[atlas_id] = new
+            return new
+
+    def refresh(self, atlas_id: int) -> LoadedAtlas:
+        """Serve the database's active version now, without waiting for the next poll."""
+        with self._loaded_lock:
+            state = self._loaded.get(atlas_id)
+        if state is not None:
+            state.checked_at = float("-inf")
+        return self.loaded(atlas_id)
+
+    def _active_version_changed(self, state: LoadedAtlas) -> bool:
+        """Whether the database's active version differs (checked at most once per poll period)."""
+        now = time.monotonic()
+        if now - state.checked_at < self.settings.model_poll_seconds:
+            return False
+        state.checked_at = now
+        with self.sessions() as session:
+            try:
+                active = repo.active_model_version(session, atlas_id=state.atlas_id)
+            except NotFound:
+                return False  # the atlas is being deleted
+        return active.version != state.model_version
 
     def _index_path(self, atlas_id: int, version: int) -> Path:
-        return self.settings.index_dir / f"atlas-{atlas_id}-v{version}.faiss"
+        return models_store.index_file(self.settings.index_dir, atlas_id, version)
 
     def _load(self, atlas_id: int) -> LoadedAtlas:
         with self.sessions() as session:
@@ -196,12 +243,7 @@ class AtlasService:
         missing = sorted(in_db - in_index)
         state.index.remove(extra)
         state.index.set_robots({i: robot_of[i] for i in in_db & in_index})
-        for start in range(0, len(missing), 10_000):
-            chunk = missing[start : start + 10_000]
-            for ids, local, global_, _, robots in iter_stored_vectors(
-                session, state.atlas_id, frame_ids=chunk
-            ):
-                state.index.add(ids, embed_vectors(state.heads, local, global_), robots)
+        add_stored_frames(session, state.atlas_id, state.heads, state.index, frame_ids=missing)
         if len(extra) or missing:
             log.info(
                 "atlas %d: index caught up with the database (+%d, -%d frames)",
@@ -214,16 +256,16 @@ class AtlasService:
     def rebuild_index(self, atlas_name: str) -> int:
         """Re-embed every frame of an atlas from stored features into a fresh index file."""
         with self.sessions() as session:
-            atlas = repo.get_atlas(session, name=atlas_name)
-            atlas_id = atlas.id
-        with self._loaded_lock:
-            self._loaded.pop(atlas_id, None)
+            atlas_id = repo.get_atlas(session, name=atlas_name).id
+        with self._atlas_lock(atlas_id):
+            with self._loaded_lock:
+                self._loaded.pop(atlas_id, None)
             with self.sessions() as session:
                 version = repo.active_model_version(session, atlas_id=atlas_id)
             self._index_path(atlas_id, version.version).unlink(missing_ok=True)
-        state = self.loaded(atlas_id)
-        self.save_index(state)
-        return state.index.size
+            state = self.loaded(atlas_id)
+            self.save_index(state)
+            return state.index.size
 
     def save_index(self, state: LoadedAtlas) -> None:
         state.index.save(self._index_path(state.atlas_id, state.model_version))
@@ -315,9 +357,11 @@ class AtlasService:
                 intrinsics=intrinsics,
                 features=features,
             )
-        state = self.loaded(frame.atlas_id)
-        state.index.add(np.array([frame.id]), self._embed(state.heads, features)[None], [robot_id])
-        state.dirty = True
+        with self._atlas_lock(frame.atlas_id):
+            state = self.loaded(frame.atlas_id)
+            embedding = self._embed(state.heads, features)
+            state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+            state.dirty = True
         return frame
 
     @staticmethod

@@ -1,4 +1,4 @@
-"""The ``loopnet`` command: serve, ingest, query, reindex, db upgrade.
+"""The ``loopnet`` command: serve, worker, ingest, query, reindex, db upgrade, weights seed.
 
 ``ingest`` and ``query`` talk to a running service over HTTP (the same path robots use), so the
 server's in-memory index always sees what they add. ``reindex`` and ``db upgrade`` work on the
@@ -35,6 +35,10 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", help="bind address (default: LOOPNET_HOST or 127.0.0.1)")
     serve.add_argument("--port", type=int, help="port (default: LOOPNET_PORT or 8000)")
     serve.set_defaults(func=cmd_serve)
+
+    worker = commands.add_parser("worker", help="run the job queue's worker (retraining jobs)")
+    worker.add_argument("--threads", type=int, default=1, help="jobs run at once (default 1)")
+    worker.set_defaults(func=cmd_worker)
 
     ingest = commands.add_parser("ingest", help="add a folder of images to a submap")
     ingest.add_argument("folder", type=Path)
@@ -88,6 +92,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=args.port or settings.port,
         log_level="info",
     )
+    return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    from service.config import Settings
+    from workers.worker import run_worker
+
+    run_worker(Settings(), workers=args.threads)
     return 0
 
 

@@ -31,6 +31,13 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
     max_image_pixels: int = Field(40_000_000, ge=1024)
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
+    model_poll_seconds: float = Field(
+        1.0, ge=0.0, description="How often a process checks for a newly activated model version."
+    )
+    redis_url: str | None = Field(
+        None, description="Redis URL for the job queue; default: a SQLite queue in the data dir."
+    )
+    queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
@@ -48,6 +55,10 @@ class Settings(BaseSettings):
     @property
     def models_dir(self) -> Path:
         return self.data_dir / "models"
+
+    @property
+    def queue_path(self) -> Path:
+        return self.data_dir / "queue.sqlite3"
 
     @property
     def image_limits(self) -> ImageLimits:

@@ -18,6 +18,7 @@ from service.config import Settings
 from service.errors import NotReady
 from service.ml.pipeline import FeaturePipeline
 from service.storage.db import make_engine, make_session_factory, upgrade_database
+from workers.queue import Queue
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +34,7 @@ class Runtime:
         self._service: AtlasService | None = None
         self.error: str | None = None
         self._thread: threading.Thread | None = None
+        self._queue: Queue | None = None
 
     def start(self, *, background: bool = True) -> None:
         """Migrate the database, then load the CNNs and every atlas's index."""
@@ -67,6 +69,13 @@ class Runtime:
     def wait_ready(self, timeout: float | None = None) -> None:
         if self._thread is not None:
             self._thread.join(timeout)
+
+    @property
+    def queue(self) -> Queue:
+        """The job queue (opened on first use: most processes never submit a job)."""
+        if self._queue is None:
+            self._queue = Queue(self.settings)
+        return self._queue
 
     @property
     def ready(self) -> bool:

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class ErrorOut(BaseModel):
@@ -126,3 +126,67 @@ class ReadyOut(BaseModel):
     preset: str | None = None
     backbone: str | None = None
     local_extractor: str | None = None
+
+
+TrainablePart = Literal["fusion", "similarity", "classifier"]
+
+
+def _all_parts() -> list[TrainablePart]:
+    return ["fusion", "similarity", "classifier"]
+
+
+class RetrainParams(BaseModel):
+    """Parameters of a retraining job; every field has a default."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    shots: int = Field(5, ge=1, le=100, description="Training frames (shots) per submap.")
+    epochs: int = Field(
+        100, ge=1, le=2000, description="Most epochs; early stopping may end sooner."
+    )
+    learning_rate: float = Field(3e-3, gt=0, le=1)
+    weight_decay: float = Field(1e-4, ge=0, le=1)
+    classification_weight: float = Field(1.0, ge=0, le=100, description="Cross-entropy weight.")
+    contrastive_weight: float = Field(1.0, ge=0, le=100, description="Contrastive loss weight.")
+    margin: float = Field(
+        1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
+    )
+    embed_dim: int = Field(256, ge=2, le=4096, description="Size of the trained fused embedding.")
+    train: list[TrainablePart] = Field(
+        default_factory=_all_parts,
+        min_length=1,
+        description="Which layers are trained; the others keep their initialisation.",
+    )
+    noise_std: float = Field(0.01, ge=0, le=1, description="Gaussian noise on stored vectors.")
+    feature_dropout: float = Field(
+        0.1, ge=0, lt=1, description="Feature dropout on stored vectors."
+    )
+    patience: int = Field(
+        15, ge=1, le=1000, description="Epochs without validation gain before stopping."
+    )
+    seed: int = Field(0, ge=0)
+
+
+class JobIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["retrain"] = "retrain"
+    params: RetrainParams = Field(default_factory=RetrainParams)
+
+
+class JobOut(BaseModel):
+    id: int
+    atlas: str
+    kind: str
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float = Field(description="0..100")
+    message: str
+    params: dict[str, Any]
+    metrics: dict[str, Any]
+    error: str | None
+    model_version: int | None = Field(description="The version a successful job created.")
+    cancel_requested: bool
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime

@@ -11,6 +11,7 @@ from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, Su
 from service.atlas_service import validate_name
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.models import ModelVersion
 
 router = APIRouter(tags=["atlases"])
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
@@ -77,6 +78,17 @@ def list_submaps(atlas: str, service: ServiceDep) -> list[SubmapOut]:
         return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
 
 
+def model_version_out(version: ModelVersion) -> ModelVersionOut:
+    return ModelVersionOut(
+        version=version.version,
+        is_active=version.is_active,
+        trained=bool(version.config.get("trained")),
+        config=version.config,
+        metrics=version.metrics,
+        created_at=version.created_at,
+    )
+
+
 @router.get(
     "/atlases/{atlas}/models",
     response_model=list[ModelVersionOut],
@@ -86,14 +98,21 @@ def list_submaps(atlas: str, service: ServiceDep) -> list[SubmapOut]:
 def list_models(atlas: str, service: ServiceDep) -> list[ModelVersionOut]:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
-        return [
-            ModelVersionOut(
-                version=v.version,
-                is_active=v.is_active,
-                trained=bool(v.config.get("trained")),
-                config=v.config,
-                metrics=v.metrics,
-                created_at=v.created_at,
-            )
-            for v in repo.list_model_versions(session, atlas_id=found.id)
-        ]
+        versions = repo.list_model_versions(session, atlas_id=found.id)
+        return [model_version_out(v) for v in versions]
+
+
+@router.post(
+    "/atlases/{atlas}/models/{version}/activate",
+    response_model=ModelVersionOut,
+    responses=NOT_FOUND,
+    summary="Make a model version the active one (roll back or forward)",
+    description="Every API process serves it within LOOPNET_MODEL_POLL_SECONDS; this one at once.",
+)
+def activate_model(atlas: str, version: int, service: ServiceDep) -> ModelVersionOut:
+    with transaction(service.sessions) as session:
+        found = repo.get_atlas(session, name=atlas)
+        activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
+        atlas_id, out = found.id, model_version_out(activated)
+    service.refresh(atlas_id)
+    return out

@@ -1,0 +1,157 @@
+"""Retraining cost: a few-shot job's training time, and re-embedding + index rebuild of a
+large atlas from stored features (synthetic vectors with the real dimensions).
+
+    python benchmarks/retraining.py                      # 100 submaps x 5 shots, 1M frames
+    python benchmarks/retraining.py --frames 200000      # smaller re-embedding run
+
+Training uses the production code (``train_heads``); re-embedding uses ``embed_vectors`` and
+``AtlasIndex.add`` in 100k-frame chunks, as the worker does (vector generation not timed).
+Reading stored vectors back from SQLite is timed separately on a smaller sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+
+import numpy as np
+import torch
+
+from service.index import AtlasIndex
+from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.heads import HeadsConfig
+from service.ml.pipeline import embed_vectors
+from service.ml.training import TrainingConfig, TrainingData, train_heads
+
+LOCAL_DIM, GLOBAL_DIM = 128, 1280  # DISK descriptors, MobileNetV2 channels
+
+
+def unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def synthetic_atlas(submaps: int, per_submap: int, seed: int = 0) -> TrainingData:
+    """Stored vectors scattered around one centre per submap (plus a shared component)."""
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(submaps), per_submap)
+    shared_d, shared_r = rng.normal(size=LOCAL_DIM) * 3, rng.normal(size=GLOBAL_DIM)
+    local = shared_d + rng.normal(size=(submaps, LOCAL_DIM))[labels]
+    global_ = shared_r + rng.normal(size=(submaps, GLOBAL_DIM))[labels]
+    local += 0.8 * rng.normal(size=local.shape)
+    global_ += 0.8 * rng.normal(size=global_.shape)
+    return TrainingData(unit(local), unit(global_), labels, np.arange(len(labels)))
+
+
+def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> None:
+    data = synthetic_atlas(submaps, per_submap)
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+    config = TrainingConfig(shots=shots)
+    train_heads(data, base, TrainingConfig(shots=shots, epochs=2))  # warm-up (imports, allocator)
+    times, epochs = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = train_heads(data, base, config)
+        times.append(time.perf_counter() - start)
+        epochs.append(result.metrics["epochs_run"])
+    print(
+        f"training: {submaps} submaps x {shots} shots ({len(data.submaps)} frames, "
+        f"{per_submap - shots} validation frames per submap): median {np.median(times):.2f} s "
+        f"over {repeats} runs (epochs run: {epochs}, at most {config.epochs})"
+    )
+
+
+def bench_reembedding(frames: int, embed_dim: int) -> None:
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+    data = synthetic_atlas(20, 10)
+    heads = train_heads(data, base, TrainingConfig(shots=5, epochs=3, embed_dim=embed_dim)).heads
+    index = AtlasIndex(heads.config.fused_dim)
+    rng = np.random.default_rng(1)
+    chunk, elapsed = 100_000, 0.0
+    for start in range(0, frames, chunk):
+        n = min(chunk, frames - start)
+        local = unit(rng.standard_normal((n, LOCAL_DIM), dtype=np.float32))
+        global_ = unit(rng.standard_normal((n, GLOBAL_DIM), dtype=np.float32))
+        ids = np.arange(start, start + n)
+        robots = ["r"] * n
+        begin = time.perf_counter()
+        index.add(ids, embed_vectors(heads, local, global_), robots)
+        elapsed += time.perf_counter() - begin
+    per_100k = elapsed / frames * 100_000
+    print(
+        f"re-embedding + index rebuild: {frames} frames, embed_dim {embed_dim}: {elapsed:.2f} s "
+        f"({per_100k:.2f} s per 100k frames; index {index.size} vectors)"
+    )
+
+
+def bench_database_read(frames: int) -> None:
+    from service.storage import repository as repo
+    from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
+    from service.storage.feature_store import iter_stored_vectors, to_row
+    from service.storage.models import Frame
+
+    rng = np.random.default_rng(2)
+    with tempfile.TemporaryDirectory() as tmp:
+        url = f"sqlite:///{tmp}/bench.sqlite3"
+        upgrade_database(url)
+        sessions = make_session_factory(make_engine(url))
+        with transaction(sessions) as session:
+            atlas = repo.create_atlas(session, name="bench", description="", feature_signature={})
+            submap = repo.create_submap(session, atlas=atlas, name="s")
+            atlas_id, submap_id = atlas.id, submap.id
+        empty = LocalFeatures.empty(LOCAL_DIM)
+        for start in range(0, frames, 5000):
+            with transaction(sessions) as session:
+                for _ in range(min(5000, frames - start)):
+                    frame = Frame(
+                        atlas_id=atlas_id,
+                        submap_id=submap_id,
+                        robot_id="r",
+                        width=1,
+                        height=1,
+                        keypoint_count=0,
+                    )
+                    session.add(frame)
+                    session.flush()
+                    features = FrameFeatures(
+                        empty,
+                        unit(rng.normal(size=(1, LOCAL_DIM)))[0],
+                        unit(rng.normal(size=(1, GLOBAL_DIM)))[0],
+                        (1, 1),
+                    )
+                    session.add(to_row(frame.id, features))
+        begin = time.perf_counter()
+        with sessions() as session:
+            count = sum(len(batch[0]) for batch in iter_stored_vectors(session, atlas_id))
+        elapsed = time.perf_counter() - begin
+    print(
+        f"reading stored D and R back from SQLite: {count} frames in {elapsed:.2f} s "
+        f"({elapsed / count * 100_000:.2f} s per 100k frames)"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--submaps", type=int, default=100)
+    parser.add_argument("--frames-per-submap", type=int, default=20)
+    parser.add_argument("--shots", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=1_000_000, help="frames to re-embed")
+    parser.add_argument("--embed-dim", type=int, default=256)
+    parser.add_argument("--db-frames", type=int, default=20_000)
+    args = parser.parse_args()
+    print(
+        f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads"
+    )
+    bench_training(args.submaps, args.frames_per_submap, args.shots, args.repeats)
+    bench_reembedding(args.frames, args.embed_dim)
+    bench_database_read(args.db_frames)
+
+
+if __name__ == "__main__":
+    main()

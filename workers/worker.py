@@ -1,0 +1,21 @@
+"""``loopnet worker``: migrate the database, then consume jobs until stopped."""
+
+from __future__ import annotations
+
+import logging
+
+from service.config import Settings
+from service.storage.db import upgrade_database
+from workers.queue import Queue
+
+log = logging.getLogger(__name__)
+
+
+def run_worker(settings: Settings, workers: int = 1) -> None:
+    """Run a Huey consumer (threads) for LoopNet's queue; SIGTERM/SIGINT stop it gracefully."""
+    upgrade_database(settings.resolved_database_url)
+    queue = Queue(settings)
+    storage = f"Redis {settings.redis_url}" if settings.redis_url else str(settings.queue_path)
+    log.info("worker consuming from %s with %d thread(s)", storage, workers)
+    consumer = queue.huey.create_consumer(workers=workers, worker_type="thread", periodic=False)
+    consumer.run()

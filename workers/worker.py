@@ -14,6 +14,10 @@ log = logging.getLogger(__name__)
 def run_worker(settings: Settings, workers: int = 1) -> None:
     """Run a Huey consumer (threads) for LoopNet's queue; SIGTERM/SIGINT stop it gracefully."""
     upgrade_database(settings.resolved_database_url)
+    if settings.torch_threads:
+        import torch
+
+        torch.set_num_threads(settings.torch_threads)
     queue = Queue(settings)
     storage = f"Redis {settings.redis_url}" if settings.redis_url else str(settings.queue_path)
     log.info("worker consuming from %s with %d thread(s)", storage, workers)

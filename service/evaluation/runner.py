@@ -249,7 +249,6 @@ def _machine() -> dict[str, Any]:
 
 
 def _working_sizes(
-    dataset: Dataset,
     sizes: Sequence[tuple[int, int]],
     preset: ModelPreset,
     baselines: Sequence[str],
@@ -257,14 +256,15 @@ def _working_sizes(
     distinct: dict[str, int] = {}
     for w, h in sizes:
         distinct[f"{w}x{h}"] = distinct.get(f"{w}x{h}", 0) + 1
-    common = max(distinct, key=lambda s: distinct[s])
-    w, h = (int(v) for v in common.split("x"))
     side = preset.local.long_side
-    scale = side / max(w, h)
-    working = f"{round(w * scale)}x{round(h * scale)}"
-    direction = "upsampled" if scale > 1 else "downsampled" if scale < 1 else "kept"
+    resized = []
+    for size in sorted(distinct):
+        w, h = (int(v) for v in size.split("x"))
+        scale = side / max(w, h)
+        direction = "upsampled" if scale > 1 else "downsampled" if scale < 1 else "kept"
+        resized.append(f"{size} {direction} to {round(w * scale)}x{round(h * scale)}")
     parts = [
-        f"local extractors at long side {side} ({common} {direction} to {working})",
+        f"local extractors at long side {side} ({'; '.join(resized)})",
         f"backbone at {preset.backbone.input_size}x{preset.backbone.input_size}",
     ]
     if "bow-orb" in baselines:
@@ -378,7 +378,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         ),
         "skipped": skipped,
         "working_sizes": _working_sizes(
-            dataset, first_pass.image_sizes, first_pass.preset, config.baselines
+            first_pass.image_sizes, first_pass.preset, config.baselines
         ),
         "machine": _machine(),
         "methods": [m.row() for m in methods],

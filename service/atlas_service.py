@@ -33,7 +33,7 @@ from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.models import Atlas, Frame, ModelVersion
+from service.storage.models import Atlas, Frame, ModelVersion, Submap
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +128,13 @@ class AtlasService:
                 activate=True,
             )
         return atlas
+
+    def create_submap(self, atlas_name: str, name: str) -> Submap:
+        validate_name("submap", name)
+        with transaction(self.sessions) as session:
+            return repo.create_submap(
+                session, atlas=repo.get_atlas(session, name=atlas_name), name=name
+            )
 
     def delete_atlas(self, name: str) -> None:
         with transaction(self.sessions) as session:

@@ -1,4 +1,4 @@
-"""The ``loopnet`` command: serve, worker, ingest, query, reindex, db upgrade, weights seed.
+"""The ``loopnet`` command: serve, worker, ingest, query, reindex, eval, db upgrade, weights seed.
 
 ``ingest`` and ``query`` talk to a running service over HTTP (the same path robots use), so the
 server's in-memory index always sees what they add. ``reindex`` and ``db upgrade`` work on the
@@ -14,13 +14,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".webp"}
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = None if argv is None else list(argv)
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -63,6 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     reindex.add_argument("atlases", nargs="*", help="atlas names (default: all)")
     reindex.set_defaults(func=cmd_reindex)
 
+    add_eval_parser(commands)
+
     seed = commands.add_parser("weights", help="pretrained weights in the torch hub cache")
     seed_commands = seed.add_subparsers(dest="weights_command", required=True)
     seed_cmd = seed_commands.add_parser(
@@ -77,6 +79,74 @@ def build_parser() -> argparse.ArgumentParser:
     upgrade.add_argument("--revision", default="head")
     upgrade.set_defaults(func=cmd_db_upgrade)
     return parser
+
+
+def _csv_list(kind: type, text: str) -> tuple:  # type: ignore[type-arg]
+    return tuple(kind(v) for v in text.split(",") if v.strip())
+
+
+def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from service.evaluation.datasets import LAYOUTS
+
+    ev = commands.add_parser(
+        "eval",
+        help="evaluate LoopNet, its ablations and classical baselines on a dataset folder",
+        description=(
+            "Runs every method on one dataset through the service's own code path (temporary "
+            "atlas) and writes report.json, report.md and PNG plots. Layouts: traversals (two "
+            "frame-aligned folders), vpr-bench (query/, ref/, ground_truth_new.npy), loopdb "
+            "(datastream_1/2/data_descriptor.csv), csv (dataset.csv), places (<place>/<image>)."
+        ),
+    )
+    ev.add_argument("dataset", type=Path, help="the dataset folder")
+    ev.add_argument("--out", type=Path, required=True, help="report folder (created)")
+    ev.add_argument("--layout", default="auto", choices=("auto", *LAYOUTS))
+    ev.add_argument("--tolerance", type=int, help="frame tolerance (default 1)")
+    ev.add_argument("--distance", type=float, default=25.0, help="metres, for CSV positions")
+    ev.add_argument("--reference", help="traversals: the map's folder")
+    ev.add_argument("--query", help="traversals: the queries' folder")
+    ev.add_argument("--submap-size", type=int, default=5, help="consecutive frames per submap")
+    ev.add_argument("--preset", default="default", help="model preset (default, paper)")
+    ev.add_argument("--long-side", type=int, help="local extractors' working long side")
+    ev.add_argument("--max-keypoints", type=int, help="keypoints per frame")
+    ev.add_argument("--backbone", help="global backbone (mobilenetv2, resnet18)")
+    ev.add_argument("--extractors", default="disk,xfeat", help="comma-separated, first = LoopNet")
+    ev.add_argument("--alphas", default="0,0.3,0.5,0.7,1", help="ablation fusion weights")
+    ev.add_argument("--baselines", default="bow-orb,seqslam-sad", help="comma-separated, or ''")
+    ev.add_argument("--limit", type=int, help="only the first N reference frames (a quick slice)")
+    ev.add_argument("--cache-dir", type=Path, help="feature cache (default OUT/cache)")
+    ev.add_argument("--examples", type=int, default=6, help="example queries in the strip")
+    ev.set_defaults(func=cmd_eval)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from service.evaluation.runner import EvalConfig, command_line, run_evaluation
+
+    config = EvalConfig(
+        dataset=args.dataset,
+        output=args.out,
+        layout=args.layout,
+        tolerance=args.tolerance,
+        distance=args.distance,
+        reference=args.reference,
+        query=args.query,
+        submap_size=args.submap_size,
+        preset=args.preset,
+        long_side=args.long_side,
+        max_keypoints=args.max_keypoints,
+        backbone=args.backbone,
+        extractors=_csv_list(str, args.extractors),
+        alphas=_csv_list(float, args.alphas),
+        baselines=_csv_list(str, args.baselines),
+        limit=args.limit,
+        cache_dir=args.cache_dir,
+        examples=args.examples,
+        command=command_line(sys.argv[1:] if args.argv is None else args.argv),
+    )
+    result = run_evaluation(config)
+    print((args.out / "report.md").read_text())
+    print(f"report written to {args.out}/report.json, report.md and PNG plots")
+    return 0 if result.methods else 1
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -118,21 +188,10 @@ def _fail(response) -> int:  # type: ignore[no-untyped-def]
     return 1
 
 
-def list_images(folder: Path) -> list[Path]:
-    """Image files directly in ``folder``, in natural name order (frame order)."""
-    import re
-
-    def natural(path: Path) -> list[object]:
-        return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
-
-    return sorted(
-        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
-        key=natural,
-    )
-
-
 def cmd_ingest(args: argparse.Namespace) -> int:
     from tqdm import tqdm
+
+    from service.evaluation.datasets import list_images
 
     if not args.folder.is_dir():
         print(f"error: {args.folder} is not a folder", file=sys.stderr)

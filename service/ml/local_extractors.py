@@ -1,4 +1,4 @@
-"""Local keypoint extractors behind one interface (DISK now; XFeat joins the same registry).
+"""Local keypoint extractors behind one interface: DISK and XFeat, chosen by name.
 
 Every extractor takes a decoded RGB frame and returns :class:`LocalFeatures` in the decoded
 image's pixel coordinates, so stored keypoints serve geometric verification directly.
@@ -22,10 +22,10 @@ class LocalExtractorConfig:
     """How a local extractor runs.
 
     Attributes:
-        name: registry key ("disk").
+        name: registry key ("disk", "xfeat").
         long_side: the image is resized (up or down) to this long side before extraction.
         max_keypoints: the strongest keypoints kept per frame.
-        nms_window: non-maximum suppression window (the paper's 5).
+        nms_window: non-maximum suppression window (the paper's 5; XFeat's is fixed at 5).
     """
 
     name: str = "disk"
@@ -39,6 +39,18 @@ class LocalExtractor(Protocol):
     descriptor_dim: int
 
     def extract(self, rgb: np.ndarray) -> LocalFeatures: ...
+
+
+def to_decoded_pixels(
+    keypoints: np.ndarray, working_size: tuple[int, int], decoded_size: tuple[int, int]
+) -> np.ndarray:
+    """Map ``N x 2`` (x, y) pixel centres of a resized image back to the decoded image.
+
+    ``working_size`` and ``decoded_size`` are (width, height). Pixel ``i`` of the working image
+    covers ``[i, i + 1)``; its centre lands at ``(i + 0.5) * scale - 0.5`` in the decoded image.
+    """
+    scale = np.array(decoded_size, np.float64) / np.array(working_size, np.float64)
+    return ((keypoints.astype(np.float64) + 0.5) * scale - 0.5).astype(np.float32)
 
 
 class DiskExtractor:
@@ -59,7 +71,6 @@ class DiskExtractor:
     def extract(self, rgb: np.ndarray) -> LocalFeatures:
         height, width = rgb.shape[:2]
         image = resize_long_side(to_tensor(rgb), self.config.long_side)
-        scale_y, scale_x = height / image.shape[-2], width / image.shape[-1]
         (found,) = self.model(
             image,
             n=self.config.max_keypoints,
@@ -68,18 +79,62 @@ class DiskExtractor:
         )
         if len(found.keypoints) == 0:
             return LocalFeatures.empty(self.descriptor_dim)
-        keypoints = found.keypoints.numpy().astype(np.float32)
-        keypoints[:, 0] = (keypoints[:, 0] + 0.5) * scale_x - 0.5
-        keypoints[:, 1] = (keypoints[:, 1] + 0.5) * scale_y - 0.5
+        working = (image.shape[-1], image.shape[-2])
         descriptors = torch.nn.functional.normalize(found.descriptors, dim=-1).numpy()
         return LocalFeatures(
-            keypoints=keypoints,
+            keypoints=to_decoded_pixels(found.keypoints.numpy(), working, (width, height)),
             descriptors=descriptors.astype(np.float32),
             scores=found.detection_scores.numpy().astype(np.float32),
         )
 
 
-LOCAL_EXTRACTORS: dict[str, type[DiskExtractor]] = {"disk": DiskExtractor}
+class XFeatExtractor:
+    """XFeat (kornia, pretrained ``xfeat.pt``): 64-d descriptors, several times faster than DISK.
+
+    The frame is resized to ``long_side`` like DISK's; XFeat then works on that image rounded
+    down to multiples of 32 and reports keypoint ``i`` at ``i * ratio`` of the image it got,
+    which :meth:`extract` turns back into the pixel centre in the decoded frame.
+    """
+
+    descriptor_dim = 64
+    NMS_WINDOW = 5  # fixed inside kornia's XFeat.detectAndCompute
+
+    def __init__(self, config: LocalExtractorConfig) -> None:
+        from kornia.feature import XFeat
+
+        if config.nms_window != self.NMS_WINDOW:
+            raise ValueError(
+                f"XFeat's non-maximum suppression window is fixed at {self.NMS_WINDOW}, "
+                f"got nms_window={config.nms_window}"
+            )
+        self.config = config
+        self.model = XFeat(top_k=config.max_keypoints)
+        self.model.net.load_state_dict(weights.load_checkpoint(weights.XFEAT))
+        self.model.eval()
+
+    @torch.inference_mode()
+    def extract(self, rgb: np.ndarray) -> LocalFeatures:
+        height, width = rgb.shape[:2]
+        image = resize_long_side(to_tensor(rgb), self.config.long_side)
+        resized_h, resized_w = image.shape[-2:]
+        (found,) = self.model.detectAndCompute(image, top_k=self.config.max_keypoints)
+        if len(found["keypoints"]) == 0:
+            return LocalFeatures.empty(self.descriptor_dim)
+        # XFeat's own working grid: the resized image rounded down to multiples of 32.
+        grid_w, grid_h = max(32, resized_w // 32 * 32), max(32, resized_h // 32 * 32)
+        ratio = np.array([resized_w / grid_w, resized_h / grid_h])
+        grid_pixels = np.rint(found["keypoints"].numpy() / ratio)
+        return LocalFeatures(
+            keypoints=to_decoded_pixels(grid_pixels, (grid_w, grid_h), (width, height)),
+            descriptors=found["descriptors"].numpy().astype(np.float32),
+            scores=found["scores"].numpy().astype(np.float32),
+        )
+
+
+LOCAL_EXTRACTORS: dict[str, type[DiskExtractor] | type[XFeatExtractor]] = {
+    "disk": DiskExtractor,
+    "xfeat": XFeatExtractor,
+}
 
 
 def build_local_extractor(config: LocalExtractorConfig) -> LocalExtractor:

@@ -38,6 +38,7 @@ PRESETS: dict[str, ModelPreset] = {
 def resolve_preset(
     name: str,
     *,
+    extractor: str | None = None,
     backbone: str | None = None,
     long_side: int | None = None,
     max_keypoints: int | None = None,
@@ -51,6 +52,8 @@ def resolve_preset(
             f"unknown model preset {name!r}; choose one of {sorted(PRESETS)}"
         ) from None
     local = preset.local
+    if extractor is not None:
+        local = replace(local, name=extractor)
     if long_side is not None:
         local = replace(local, long_side=long_side)
     if max_keypoints is not None:

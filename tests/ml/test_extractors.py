@@ -38,6 +38,45 @@ def test_featureless_frame_is_valid_and_never_nan(disk, pipeline) -> None:  # ty
     assert not np.isnan(features.global_vector).any()
 
 
+@pytest.fixture(scope="module")
+def xfeat():  # type: ignore[no-untyped-def]
+    return build_local_extractor(
+        LocalExtractorConfig(name="xfeat", long_side=256, max_keypoints=300)
+    )
+
+
+def test_xfeat_on_a_real_frame(xfeat) -> None:  # type: ignore[no-untyped-def]
+    rgb = decode_image(gardens_point_day_night(0, "query"))  # 960 x 540
+    found = xfeat.extract(rgb)
+    assert xfeat.descriptor_dim == 64 and found.descriptors.shape == (found.count, 64)
+    assert 50 <= found.count <= 300
+    assert np.allclose(np.linalg.norm(found.descriptors, axis=1), 1.0, atol=1e-4)
+    assert (np.diff(found.scores) <= 0).all()  # strongest first
+    # keypoints come back in the decoded image's pixels, not the 256 px working size
+    assert found.keypoints[:, 0].max() > 300 and found.keypoints[:, 0].max() < 960
+    assert found.keypoints.min() > -0.5 and found.keypoints[:, 1].max() < 540
+
+
+def test_xfeat_keypoints_do_not_depend_on_the_upload_size(xfeat) -> None:  # type: ignore[no-untyped-def]
+    """The same frame uploaded at two sizes gives keypoints at the same scene points."""
+    rgb = decode_image(gardens_point_day_night(2, "query"))  # 960 x 540
+    half = rgb[::2, ::2].copy()  # 480 x 270: same working image after resizing to 256
+    full, small = xfeat.extract(rgb), xfeat.extract(half)
+    scaled = (small.keypoints + 0.5) * 2.0 - 0.5  # decoded pixels of the half-size upload
+    nearest = np.linalg.norm(full.keypoints[:, None] - scaled[None], axis=-1).min(1)
+    assert np.median(nearest) < 4.0  # pixels of the 960-wide frame (one working pixel is 3.75)
+
+
+def test_xfeat_featureless_frame_gives_no_keypoints(xfeat) -> None:  # type: ignore[no-untyped-def]
+    assert xfeat.extract(np.zeros((3, 500, 3), np.uint8)).count == 0
+    assert xfeat.extract(np.zeros((1, 1, 3), np.uint8)).count == 0
+
+
+def test_xfeat_rejects_another_nms_window() -> None:
+    with pytest.raises(ValueError, match="fixed at 5"):
+        build_local_extractor(LocalExtractorConfig(name="xfeat", nms_window=3))
+
+
 def test_unknown_extractor_lists_choices() -> None:
     with pytest.raises(ValueError, match="choose one of"):
         build_local_extractor(LocalExtractorConfig(name="sift"))

@@ -8,7 +8,6 @@ from fastapi import APIRouter, Response, status
 
 from service.api.deps import ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
-from service.atlas_service import validate_name
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import ModelVersion
@@ -63,12 +62,8 @@ def delete_atlas(atlas: str, service: ServiceDep) -> Response:
     summary="Create a submap",
 )
 def create_submap(atlas: str, body: SubmapIn, service: ServiceDep) -> SubmapOut:
-    validate_name("submap", body.name)
-    with transaction(service.sessions) as session:
-        submap = repo.create_submap(
-            session, atlas=repo.get_atlas(session, name=atlas), name=body.name
-        )
-        return SubmapOut(name=submap.name, frames=0, created_at=submap.created_at)
+    submap = service.create_submap(atlas, body.name)
+    return SubmapOut(name=submap.name, frames=0, created_at=submap.created_at)
 
 
 @router.get("/atlases/{atlas}/submaps", response_model=list[SubmapOut], responses=NOT_FOUND)

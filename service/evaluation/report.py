@@ -1,0 +1,205 @@
+"""Write a run's results: ``report.json`` (everything), ``report.md`` (the tables) and PNG plots
+(precision-recall curves of all methods on one chart; a strip of example queries with their
+best matches, framed green when right and red when wrong)."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.evaluation.datasets import Dataset
+from service.evaluation.protocol import RECALL_KS, MethodResult
+
+PR_PLOT = "pr_curves.png"
+EXAMPLES_PLOT = "examples.png"
+
+
+def _fmt(value: float | None, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    return f"{value:.{digits}f}"
+
+
+def methods_table(methods: Sequence[MethodResult], tolerance: str) -> str:
+    header = (
+        f"| method | {' | '.join(f'R@{k}' for k in RECALL_KS)} | submap acc | frame acc "
+        "| AUC-PR | R@100%P | threshold@100%P | ms/query median | ms/query p95 |"
+    )
+    lines = [header, "|" + " --- |" * (len(RECALL_KS) + 8)]
+    for m in methods:
+        lines.append(
+            f"| {m.label} | "
+            + " | ".join(_fmt(m.recall[k]) for k in RECALL_KS)
+            + f" | {_fmt(m.submap_accuracy)} | {_fmt(m.frame_accuracy)} | {_fmt(m.auc_pr)} "
+            f"| {_fmt(m.recall_at_full_precision)} | {_fmt(m.threshold_at_full_precision)} "
+            f"| {_fmt(m.query_ms.get('median'), 1)} | {_fmt(m.query_ms.get('p95'), 1)} |"
+        )
+    lines.append("")
+    lines.append(f"Tolerance: {tolerance}. Frame accuracy is Recall@1.")
+    return "\n".join(lines)
+
+
+def stages_table(stages: dict[str, dict[str, dict[str, float]]]) -> str:
+    lines = ["| pass | stage | median ms | p95 ms | frames |", "| --- | --- | --- | --- | --- |"]
+    for pass_name, by_stage in stages.items():
+        for stage, s in by_stage.items():
+            lines.append(
+                f"| {pass_name} | {stage} | {_fmt(s['median'], 2)} | {_fmt(s['p95'], 2)} "
+                f"| {s['n']} |"
+            )
+    return "\n".join(lines)
+
+
+def write_markdown(report: dict[str, Any], methods: Sequence[MethodResult], path: Path) -> None:
+    d = report["dataset"]
+    target = report["target"]
+    lines = [
+        f"# LoopNet evaluation: {d['name']}",
+        "",
+        f"Command: `{report['command']}`",
+        "",
+        f"- Layout: {d['layout']} ({d['root']}); {d['references']} reference frames, "
+        f"{d['queries']} queries ({d['answerable']} with a right reference).",
+        f"- Ground truth: {d['ground_truth']}.",
+        f"- Submaps: {report['protocol']['submaps']}; predicted submap = the best match's "
+        "submap (the classification head is untrained in this run).",
+        *(f"- Left out: {line}" for line in d["excluded"]),
+        f"- Image sizes (decoded): {report['working_sizes']['decoded']}.",
+        f"- Working sizes: {report['working_sizes']['note']}",
+        f"- Models: {report['models']}",
+        f"- Machine: {report['machine']['summary']}.",
+        "",
+        "## Methods",
+        "",
+        methods_table(methods, d["tolerance_text"]),
+        "",
+        "## Target: fused LoopNet ahead of the best baseline or single-branch ablation",
+        "",
+        f"{target['verdict']}",
+        "",
+        "## Time per stage",
+        "",
+        stages_table(report["stages"]),
+        "",
+        report["timing_note"],
+        "",
+        f"![precision-recall]({PR_PLOT})",
+        "",
+        f"![examples]({EXAMPLES_PLOT})",
+        "",
+    ]
+    path.write_text("\n".join(lines))
+
+
+def plot_pr_curves(methods: Sequence[MethodResult], title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
+    colours = plt.get_cmap("tab20")
+    for i, m in enumerate(methods):
+        recall, precision = m.pr_curve["recall"], m.pr_curve["precision"]
+        style = "-" if m.kind != "baseline" else "--"
+        width = 2.4 if m.kind == "loopnet" else 1.2
+        ax.plot(
+            [0.0, *recall],
+            [precision[0] if precision else 1.0, *precision],
+            style,
+            linewidth=width,
+            color=colours(i % 20),
+            label=f"{m.label} (AUC {m.auc_pr:.2f})",
+        )
+    ax.set_xlabel("recall (share of answerable queries accepted and right)")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.set_title(title)
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def example_queries(count: int, total: int) -> list[int]:
+    """``count`` query indices spread evenly over the run (deterministic)."""
+    if total == 0 or count <= 0:
+        return []
+    return sorted({int(i) for i in np.linspace(0, total - 1, min(count, total))})
+
+
+def plot_examples(
+    dataset: Dataset, method: MethodResult, path: Path, *, count: int = 6, top: int = 3
+) -> list[dict[str, Any]]:
+    """A strip per example query: the query, then its ``top`` best references (green right,
+    red wrong). Returns what it drew, for report.json."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    chosen = example_queries(count, len(dataset.queries))
+    if not chosen:
+        return []
+    fig, axes = plt.subplots(
+        len(chosen), top + 1, figsize=(2.6 * (top + 1), 1.7 * len(chosen)), dpi=100, squeeze=False
+    )
+    drawn = []
+    for row, q in enumerate(chosen):
+        query = dataset.queries[q]
+        panels = [(query.path, "query", "black")]
+        matches = []
+        for rank in range(min(top, method.ranking.indices.shape[1])):
+            ref = int(method.ranking.indices[q, rank])
+            if ref < 0:
+                continue
+            right = ref in query.positives
+            score = float(method.ranking.scores[q, rank])
+            matches.append({"reference": ref, "similarity": score, "right": right})
+            panels.append(
+                (
+                    dataset.references[ref].path,
+                    f"#{rank + 1} {score:.2f}",
+                    "green" if right else "red",
+                )
+            )
+        drawn.append({"query": q, "path": str(query.path), "matches": matches})
+        for col, ax in enumerate(axes[row]):
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if col >= len(panels):
+                ax.axis("off")
+                continue
+            image_path, caption, colour = panels[col]
+            with Image.open(image_path) as image:
+                ax.imshow(np.asarray(image.convert("RGB")))
+            ax.set_title(caption, fontsize=8, color=colour)
+            for spine in ax.spines.values():
+                spine.set_edgecolor(colour)
+                spine.set_linewidth(3 if col else 1)
+    fig.suptitle(f"{dataset.name}: {method.label}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return drawn
+
+
+def write_json(report: dict[str, Any], path: Path) -> None:
+    def default(value: Any) -> Any:
+        if isinstance(value, np.generic):
+            return value.item()
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if isinstance(value, Path):
+            return str(value)
+        raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+    path.write_text(json.dumps(report, indent=2, default=default, allow_nan=True))

@@ -1,0 +1,215 @@
+"""One pass of a dataset through the service's own code path, for one local extractor.
+
+Each image is decoded and run through the CNNs once by :meth:`AtlasService.extract` (or read
+back from the feature cache); references are stored with :meth:`AtlasService.ingest_features`
+into a temporary atlas, one submap per protocol submap; queries are answered by
+:meth:`AtlasService.query_features`. The stored vectors D and R of every frame are kept, so the
+alpha ablations re-embed them without running a CNN again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from service.atlas_service import AtlasService
+from service.config import Settings
+from service.evaluation.datasets import Dataset, all_images
+from service.evaluation.metrics import Ranking
+from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.pipeline import FeaturePipeline
+from service.ml.presets import ModelPreset
+from service.runtime import Runtime
+
+ATLAS = "evaluation"
+ROBOT = "reference"
+EXTRACTION_STAGES = ("decode", "local_features", "global_features")
+
+
+@dataclass
+class PassResult:
+    """What one extractor's pass produced.
+
+    Attributes:
+        ranking: the service's answers (``Q x k``, reference indices, cosine similarities).
+        reference_vectors, query_vectors: ``(D, R)`` of every frame, for the ablations.
+        stage_ms: per-frame milliseconds of each stage (decode, CNNs, ingest, heads, search).
+        query_ms: per-query end-to-end milliseconds (decode + CNNs + heads + search).
+        keypoints: keypoints found per frame, references then queries.
+        cached: whether the CNN outputs came from the feature cache.
+    """
+
+    preset: ModelPreset
+    ranking: Ranking
+    reference_vectors: tuple[np.ndarray, np.ndarray]
+    query_vectors: tuple[np.ndarray, np.ndarray]
+    stage_ms: dict[str, list[float]]
+    query_ms: list[float]
+    keypoints: np.ndarray
+    image_sizes: list[tuple[int, int]]
+    cached: bool
+    threshold: float
+    signature: dict[str, object] = field(default_factory=dict)
+
+
+# ----- feature cache ----------------------------------------------------------------------
+
+
+def cache_path(cache_dir: Path, dataset: Dataset, pipeline: FeaturePipeline) -> Path:
+    """A cache file named by the dataset, the feature settings and the exact image files."""
+    files = [
+        (str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in all_images(dataset)
+    ]
+    key = json.dumps({"features": pipeline.signature, "files": files}, sort_keys=True)
+    digest = hashlib.sha1(key.encode()).hexdigest()[:16]
+    local = pipeline.preset.local
+    return cache_dir / f"{dataset.name}-{local.name}{local.long_side}-{digest}.npz"
+
+
+@dataclass
+class CachedFeatures:
+    local: np.ndarray
+    global_: np.ndarray
+    keypoints: np.ndarray
+    image_size: np.ndarray
+    stage_ms: np.ndarray  # N x len(EXTRACTION_STAGES)
+
+    def frame(self, i: int, descriptor_dim: int) -> tuple[FrameFeatures, float]:
+        """The frame's vectors as the pipeline gave them; keypoints themselves are not cached."""
+        decode_ms, local_ms, global_ms = (float(v) for v in self.stage_ms[i])
+        features = FrameFeatures(
+            local=LocalFeatures.empty(descriptor_dim),
+            local_vector=self.local[i],
+            global_vector=self.global_[i],
+            image_size=(int(self.image_size[i, 0]), int(self.image_size[i, 1])),
+            timings_ms={"local_features": local_ms, "global_features": global_ms},
+        )
+        return features, decode_ms
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(
+            tmp,
+            local=self.local,
+            global_=self.global_,
+            keypoints=self.keypoints,
+            image_size=self.image_size,
+            stage_ms=self.stage_ms,
+        )
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> CachedFeatures:
+        with np.load(path) as data:
+            return cls(**{name: data[name] for name in data.files})
+
+
+# ----- the pass ---------------------------------------------------------------------------
+
+
+def submap_name(index: int) -> str:
+    return f"submap-{index:05d}"
+
+
+def _frames(
+    service: AtlasService, paths: Sequence[Path], cached: CachedFeatures | None, desc: str
+) -> Iterator[tuple[FrameFeatures, float]]:
+    dim = service.pipeline.local.descriptor_dim
+    for i, path in enumerate(tqdm(paths, desc=desc, unit="img", leave=False)):
+        yield cached.frame(i, dim) if cached is not None else service.extract(path.read_bytes())
+
+
+def run_service_pass(
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    pipeline: FeaturePipeline,
+    *,
+    k: int,
+    cache_dir: Path | None,
+    label: str,
+) -> PassResult:
+    """Ingest the references into a temporary atlas, query every query image, keep the vectors."""
+    path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
+    cached = CachedFeatures.load(path) if path is not None and path.is_file() else None
+    images = list(all_images(dataset))
+    n_refs = len(dataset.references)
+    local_vectors, global_vectors, keypoints, sizes, extraction_ms = [], [], [], [], []
+    stage_ms: dict[str, list[float]] = {
+        name: [] for name in (*EXTRACTION_STAGES, "ingest", "heads", "search")
+    }
+    query_ms: list[float] = []
+    indices, scores = [], []
+
+    with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
+        settings = Settings(data_dir=Path(data_dir), max_k=max(k, 1))
+        runtime = Runtime(settings, pipeline)
+        runtime.start(background=False)
+        service = runtime.service
+        service.create_atlas(ATLAS, description=f"evaluation of {dataset.name}")
+        for submap in sorted(set(submap_of)):
+            service.create_submap(ATLAS, submap_name(submap))
+        frame_to_reference: dict[int, int] = {}
+        frames = _frames(service, images, cached, f"{label}: {dataset.name}")
+        for i, (features, decode_ms) in enumerate(frames):
+            local_vectors.append(features.local_vector)
+            global_vectors.append(features.global_vector)
+            keypoints.append(features.local.count)
+            sizes.append(features.image_size)
+            stages = [decode_ms, *(features.timings_ms[s] for s in EXTRACTION_STAGES[1:])]
+            extraction_ms.append(stages)
+            for name, ms in zip(EXTRACTION_STAGES, stages, strict=True):
+                stage_ms[name].append(ms)
+            if i < n_refs:
+                start = time.perf_counter()
+                frame = service.ingest_features(
+                    atlas_name=ATLAS,
+                    submap_name=submap_name(submap_of[i]),
+                    robot_id=ROBOT,
+                    features=features,
+                )
+                stage_ms["ingest"].append((time.perf_counter() - start) * 1000.0)
+                frame_to_reference[frame.id] = i
+                continue
+            answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
+            found = [frame_to_reference[c.frame_id] for c in answer.candidates]
+            indices.append(found + [-1] * (k - len(found)))
+            scores.append([c.similarity for c in answer.candidates] + [-np.inf] * (k - len(found)))
+            stage_ms["heads"].append(answer.timings_ms["heads"])
+            stage_ms["search"].append(answer.timings_ms["search"])
+            query_ms.append(sum(stages) + answer.timings_ms["heads"] + answer.timings_ms["search"])
+        threshold = settings.loop_closure_threshold
+        runtime.stop()
+
+    if cached is None and path is not None:
+        CachedFeatures(
+            local=np.stack(local_vectors),
+            global_=np.stack(global_vectors),
+            keypoints=np.array(keypoints, np.int64),
+            image_size=np.array(sizes, np.int64),
+            stage_ms=np.array(extraction_ms, np.float64),
+        ).save(path)
+    local_all, global_all = np.stack(local_vectors), np.stack(global_vectors)
+    return PassResult(
+        preset=pipeline.preset,
+        ranking=Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
+        reference_vectors=(local_all[:n_refs], global_all[:n_refs]),
+        query_vectors=(local_all[n_refs:], global_all[n_refs:]),
+        stage_ms=stage_ms,
+        query_ms=query_ms,
+        keypoints=np.array(keypoints, np.int64)
+        if cached is None
+        else cached.keypoints.astype(np.int64),
+        image_sizes=sizes,
+        cached=cached is not None,
+        threshold=threshold,
+        signature=pipeline.signature,
+    )

@@ -106,10 +106,10 @@ def evaluate_ranking(
         auc_pr=curve.auc,
         recall_at_full_precision=curve.recall_at_full_precision,
         threshold_at_full_precision=curve.threshold_at_full_precision,
-        pr_curve={
-            "threshold": curve.thresholds.tolist(),
-            "precision": curve.precision.tolist(),
-            "recall": curve.recall.tolist(),
+        pr_curve={  # 6 decimals keep report.json small on datasets with thousands of queries
+            "threshold": np.round(curve.thresholds, 6).tolist(),
+            "precision": np.round(curve.precision, 6).tolist(),
+            "recall": np.round(curve.recall, 6).tolist(),
         },
         ranking=ranking,
         query_ms=summary(np.asarray(query_ms, dtype=np.float64)),

@@ -406,4 +406,5 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
 
 
 def command_line(argv: Sequence[str]) -> str:
-    return "loopnet eval " + " ".join(shlex.quote(a) for a in argv)
+    """The `loopnet` command line of a run, as the report records it (argv without "loopnet")."""
+    return "loopnet " + " ".join(shlex.quote(a) for a in argv)

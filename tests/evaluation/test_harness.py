@@ -110,7 +110,7 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     printed = capsys.readouterr().out
     assert "| LoopNet XFeat α=0.7 (service path) |" in printed
     report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert report["command"].startswith("loopnet eval ") and "--limit 10" in report["command"]
+    assert report["command"] == "loopnet " + " ".join(argv)  # the command that reproduces it
     assert [m["name"] for m in report["methods"]] == [
         "loopnet-xfeat",
         "xfeat-local-only",

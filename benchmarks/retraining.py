@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import tempfile
 import time
 
 import numpy as np
@@ -87,20 +86,15 @@ def bench_reembedding(frames: int, embed_dim: int) -> None:
 
 
 def bench_database_read(frames: int) -> None:
-    from service.storage import repository as repo
-    from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
+    from scratch_atlas import scratch_atlas
+
+    from service.storage.db import transaction
     from service.storage.feature_store import iter_stored_vectors, to_row
     from service.storage.models import Frame
 
     rng = np.random.default_rng(2)
-    with tempfile.TemporaryDirectory() as tmp:
-        url = f"sqlite:///{tmp}/bench.sqlite3"
-        upgrade_database(url)
-        sessions = make_session_factory(make_engine(url))
-        with transaction(sessions) as session:
-            atlas = repo.create_atlas(session, name="bench", description="", feature_signature={})
-            submap = repo.create_submap(session, atlas=atlas, name="s")
-            atlas_id, submap_id = atlas.id, submap.id
+    with scratch_atlas() as (sessions, atlas, submap):
+        atlas_id, submap_id = atlas.id, submap.id
         empty = LocalFeatures.empty(LOCAL_DIM)
         for start in range(0, frames, 5000):
             with transaction(sessions) as session:

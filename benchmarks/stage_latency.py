@@ -12,7 +12,6 @@ import argparse
 import os
 import platform
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from functools import partial
@@ -130,9 +129,11 @@ def main() -> None:
         timed(lambda: index.search(query, 5), args.repeats * 3),
     )
 
+    from scratch_atlas import scratch_atlas
+
     from service.ml.features import FrameFeatures
     from service.storage import repository as repo
-    from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
+    from service.storage.db import transaction
 
     features = FrameFeatures(
         local,
@@ -140,13 +141,7 @@ def main() -> None:
         r[0],
         (rgb.shape[1], rgb.shape[0]),
     )
-    with tempfile.TemporaryDirectory() as tmp:
-        url = f"sqlite:///{tmp}/bench.sqlite3"
-        upgrade_database(url)
-        sessions = make_session_factory(make_engine(url))
-        with transaction(sessions) as session:
-            atlas = repo.create_atlas(session, name="bench", description="", feature_signature={})
-            submap = repo.create_submap(session, atlas=atlas, name="s")
+    with scratch_atlas() as (sessions, atlas, submap):
 
         def write() -> None:
             with transaction(sessions) as session:

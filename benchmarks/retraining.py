@@ -3,6 +3,10 @@ large atlas from stored features (synthetic vectors with the real dimensions).
 
     python benchmarks/retraining.py                      # 100 submaps x 5 shots, 1M frames
     python benchmarks/retraining.py --frames 200000      # smaller re-embedding run
+    python benchmarks/retraining.py --threads 1          # what LOOPNET_TORCH_THREADS=1 gives
+
+Wall and CPU seconds are both printed: on a machine shared with other work, CPU seconds of a
+one-thread run estimate what a quiet machine's wall clock would show.
 
 Training uses the production code (``train_heads``); re-embedding uses ``embed_vectors`` and
 ``AtlasIndex.add`` in 100k-frame chunks, as the worker does (vector generation not timed).
@@ -49,16 +53,18 @@ def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> N
     base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
     config = TrainingConfig(shots=shots)
     train_heads(data, base, TrainingConfig(shots=shots, epochs=2))  # warm-up (imports, allocator)
-    times, epochs = [], []
+    times, cpu_times, epochs = [], [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         result = train_heads(data, base, config)
         times.append(time.perf_counter() - start)
+        cpu_times.append(time.process_time() - cpu_start)
         epochs.append(result.metrics["epochs_run"])
     print(
         f"training: {submaps} submaps x {shots} shots ({len(data.submaps)} frames, "
         f"{per_submap - shots} validation frames per submap): median {np.median(times):.2f} s "
-        f"over {repeats} runs (epochs run: {epochs}, at most {config.epochs})"
+        f"wall, {np.median(cpu_times):.2f} s CPU over {repeats} runs (epochs run: {epochs}, "
+        f"at most {config.epochs})"
     )
 
 
@@ -68,20 +74,22 @@ def bench_reembedding(frames: int, embed_dim: int) -> None:
     heads = train_heads(data, base, TrainingConfig(shots=5, epochs=3, embed_dim=embed_dim)).heads
     index = AtlasIndex(heads.config.fused_dim)
     rng = np.random.default_rng(1)
-    chunk, elapsed = 100_000, 0.0
+    chunk, elapsed, cpu = 100_000, 0.0, 0.0
     for start in range(0, frames, chunk):
         n = min(chunk, frames - start)
         local = unit(rng.standard_normal((n, LOCAL_DIM), dtype=np.float32))
         global_ = unit(rng.standard_normal((n, GLOBAL_DIM), dtype=np.float32))
         ids = np.arange(start, start + n)
         robots = ["r"] * n
-        begin = time.perf_counter()
+        begin, cpu_begin = time.perf_counter(), time.process_time()
         index.add(ids, embed_vectors(heads, local, global_), robots)
         elapsed += time.perf_counter() - begin
+        cpu += time.process_time() - cpu_begin
     per_100k = elapsed / frames * 100_000
     print(
         f"re-embedding + index rebuild: {frames} frames, embed_dim {embed_dim}: {elapsed:.2f} s "
-        f"({per_100k:.2f} s per 100k frames; index {index.size} vectors)"
+        f"wall, {cpu:.2f} s CPU ({per_100k:.2f} s wall per 100k frames; index {index.size} "
+        "vectors)"
     )
 
 
@@ -137,7 +145,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=1_000_000, help="frames to re-embed")
     parser.add_argument("--embed-dim", type=int, default=256)
     parser.add_argument("--db-frames", type=int, default=20_000)
+    parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     print(
         f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads"

@@ -116,6 +116,16 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
     ev.add_argument("--limit", type=int, help="only the first N reference frames (a quick slice)")
     ev.add_argument("--cache-dir", type=Path, help="feature cache (default OUT/cache)")
     ev.add_argument("--examples", type=int, default=6, help="example queries in the strip")
+    ev.add_argument(
+        "--retrain-shots",
+        default="1,3,5",
+        help="K values (shots per submap) of the retrained rows, comma-separated; '' for none",
+    )
+    ev.add_argument(
+        "--retrain-protocols",
+        default="map,revisit",
+        help="map (reference shots only) and/or revisit (the paper's: also query-condition shots)",
+    )
     ev.set_defaults(func=cmd_eval)
 
 
@@ -141,6 +151,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         limit=args.limit,
         cache_dir=args.cache_dir,
         examples=args.examples,
+        retrain_shots=_csv_list(int, args.retrain_shots),
+        retrain_protocols=_csv_list(str, args.retrain_protocols),
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

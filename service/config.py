@@ -39,6 +39,17 @@ class Settings(BaseSettings):
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    job_stale_seconds: float = Field(
+        600.0,
+        gt=0,
+        description="A running job with no progress for this long is failed: its worker died.",
+    )
+    job_requeue_seconds: float = Field(
+        30.0, gt=0, description="A queued job missing from the queue this long is enqueued again."
+    )
+    job_sweep_seconds: float = Field(
+        60.0, gt=0, description="How often each worker looks for lost or orphaned jobs."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 

@@ -30,6 +30,8 @@ from service.storage.feature_store import load_stored_vectors
 
 log = logging.getLogger(__name__)
 
+REPORT_SECONDS = 2.0  # at most one progress write per this many seconds while re-embedding
+
 
 class JobRunner:
     """Runs one job id against the database; reports progress and honours cancellation."""
@@ -125,8 +127,20 @@ class JobRunner:
             raise TrainingCancelled("cancelled before re-embedding")
         started = time.perf_counter()
         index = AtlasIndex(result.heads.config.fused_dim)
+        last_report = started
+
+        def on_chunk(done: int) -> None:
+            """Progress, throttled: it is also the heartbeat that tells a live job from a dead
+            worker's (``job_stale_seconds``)."""
+            nonlocal last_report
+            if time.perf_counter() - last_report >= REPORT_SECONDS:
+                last_report = time.perf_counter()
+                self._progress(
+                    job_id, 78 + 16 * done / len(ids), f"re-embedding: {done}/{len(ids)} frames"
+                )
+
         with self.sessions() as session:
-            add_stored_frames(session, atlas_id, result.heads, index)
+            add_stored_frames(session, atlas_id, result.heads, index, progress=on_chunk)
         reembed_seconds = time.perf_counter() - started
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)
         files.append(index_path)

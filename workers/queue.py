@@ -41,6 +41,14 @@ class Queue:
     def enqueue(self, job_id: int) -> None:
         self.run_job(job_id)
 
+    def pending_job_ids(self) -> set[int]:
+        """Ids of the jobs waiting in the queue storage (not those a worker has taken)."""
+        return {
+            int(task.args[0])
+            for task in self.huey.pending()
+            if task.name == TASK_NAME and task.args
+        }
+
 
 def make_huey(settings: Settings) -> Huey:
     if settings.redis_url:

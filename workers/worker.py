@@ -5,8 +5,9 @@ from __future__ import annotations
 import logging
 
 from service.config import Settings
-from service.storage.db import upgrade_database
+from service.storage.db import make_engine, make_session_factory, upgrade_database
 from workers.queue import Queue
+from workers.recovery import start_sweeper
 
 log = logging.getLogger(__name__)
 
@@ -21,5 +22,11 @@ def run_worker(settings: Settings, workers: int = 1) -> None:
     queue = Queue(settings)
     storage = f"Redis {settings.redis_url}" if settings.redis_url else str(settings.queue_path)
     log.info("worker consuming from %s with %d thread(s)", storage, workers)
+    engine = make_engine(settings.resolved_database_url)
+    stop_sweeper = start_sweeper(settings, make_session_factory(engine), queue)
     consumer = queue.huey.create_consumer(workers=workers, worker_type="thread", periodic=False)
-    consumer.run()
+    try:
+        consumer.run()
+    finally:
+        stop_sweeper.set()
+        engine.dispose()

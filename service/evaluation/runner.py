@@ -38,6 +38,7 @@ from service.evaluation.protocol import (
     embedding_ranking,
     evaluate_ranking,
 )
+from service.evaluation.retraining_pass import PROTOCOLS, RetrainingRow, retraining_rows
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
@@ -66,6 +67,8 @@ class EvalConfig:
         baselines: classical baselines to run.
         limit: keep the first ``limit`` reference frames (a quick slice).
         cache_dir: where extracted features are cached (None: ``output/cache``).
+        retrain_shots: K values (shots per submap) of the retrained rows; empty: none.
+        retrain_protocols: ``map`` and/or ``revisit`` (see ``retraining_pass``).
     """
 
     dataset: Path
@@ -87,6 +90,8 @@ class EvalConfig:
     cache_dir: Path | None = None
     examples: int = 6
     k: int = 10
+    retrain_shots: tuple[int, ...] = ()
+    retrain_protocols: tuple[str, ...] = PROTOCOLS
     command: str = ""
 
 
@@ -94,6 +99,7 @@ class EvalConfig:
 class EvalResult:
     report: dict[str, Any]
     methods: list[MethodResult] = field(default_factory=list)
+    retraining: list[RetrainingRow] = field(default_factory=list)
 
 
 def _alpha_label(extractor: str, alpha: float) -> tuple[str, str]:
@@ -336,6 +342,20 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     if first_pass is None:
         raise RuntimeError(f"no local extractor could run: {skipped}")
     methods += global_only
+    retraining: list[RetrainingRow] = []
+    if config.retrain_shots:
+        extractor = config.extractors[0]
+        retraining = retraining_rows(
+            dataset,
+            submap_of,
+            first_pass,
+            next(m for m in methods if m.kind == "loopnet"),
+            shots=config.retrain_shots,
+            protocols=config.retrain_protocols,
+            k=config.k,
+            extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
+        )
+        methods += [row.after for row in retraining]
     for name in config.baselines:
         method, baseline_stages = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k
@@ -394,6 +414,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             )
         ),
         "target": _target(methods),
+        "retraining": [row.row() for row in retraining],
     }
     title = f"{dataset.name}: loop-closure precision-recall ({tolerance_text})"
     reporting.plot_pr_curves(methods, title, output / reporting.PR_PLOT)
@@ -402,7 +423,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     )
     reporting.write_json(report, output / "report.json")
     reporting.write_markdown(report, methods, output / "report.md")
-    return EvalResult(report, methods)
+    return EvalResult(report, methods, retraining)
 
 
 def command_line(argv: Sequence[str]) -> str:

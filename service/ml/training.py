@@ -232,6 +232,7 @@ def train_heads(
     *,
     progress: ProgressCallback | None = None,
     should_stop: Callable[[], bool] | None = None,
+    shot_idx: np.ndarray | None = None,
 ) -> TrainingResult:
     """Train new heads for an atlas from its stored vectors.
 
@@ -239,6 +240,8 @@ def train_heads(
         data: every frame of the atlas (D, R, submap ids).
         base: dimensions and alpha of the untrained model; ``config.embed_dim`` sets the
             trained model's fused size.
+        shot_idx: the training frames (indices into ``data``); None: ``config.shots`` per
+            submap by :func:`split_shots`. The other frames validate.
         progress: called with (fraction 0..1, message) once per epoch.
         should_stop: polled once per epoch; True raises :class:`TrainingCancelled`.
     """
@@ -258,7 +261,11 @@ def train_heads(
     heads = LoopNetHeads(heads_config, class_labels=labels)
     pca_init(heads, data.local, data.global_, seed=config.seed)
 
-    train_idx, val_idx = split_shots(data.submaps, config.shots)
+    if shot_idx is None:
+        train_idx, val_idx = split_shots(data.submaps, config.shots)
+    else:
+        train_idx = np.unique(np.asarray(shot_idx, dtype=np.int64))
+        val_idx = np.setdiff1d(np.arange(len(data.submaps)), train_idx)
     label_index = {label: i for i, label in enumerate(labels)}
     targets = torch.tensor([label_index[int(s)] for s in data.submaps], dtype=torch.long)
     local = torch.from_numpy(data.local)

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from service.errors import Conflict, NotFound
@@ -49,16 +50,35 @@ def list_jobs(session: Session, *, atlas_id: int, limit: int = 100) -> list[Job]
 
 
 def start_job(session: Session, *, job_id: int) -> Job | None:
-    """Mark a queued job running; None if it was cancelled (or already taken) meanwhile."""
-    job = session.get(Job, job_id, with_for_update=True)
-    if job is None or job.status != "queued":
+    """Claim a queued job (mark it running); None if it was cancelled or taken meanwhile.
+
+    The claim is one conditional UPDATE, so of two workers handed the same id (a job
+    re-enqueued by :func:`stale_jobs`' sweep, say) exactly one runs it, on SQLite and
+    PostgreSQL alike.
+    """
+    now = utcnow()
+    claimed = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.status == "queued", Job.cancel_requested.is_(False))
+        .values(status="running", started_at=now, updated_at=now, message="started")
+        .execution_options(synchronize_session=False)
+    )
+    job = session.get(Job, job_id, populate_existing=True)
+    if job is None:
         return None
-    if job.cancel_requested:
-        finish_job(session, job=job, status="cancelled", message="cancelled before it started")
+    if claimed.rowcount != 1:  # type: ignore[attr-defined]
+        if job.status == "queued" and job.cancel_requested:
+            finish_job(session, job=job, status="cancelled", message="cancelled before it started")
         return None
-    job.status, job.started_at, job.updated_at = "running", utcnow(), utcnow()
-    job.message = "started"
     return job
+
+
+def stale_jobs(session: Session, *, status: str, not_updated_since: datetime) -> list[Job]:
+    """Jobs in ``status`` whose row has not changed since the given time (oldest first)."""
+    query = (
+        select(Job).where(Job.status == status, Job.updated_at < not_updated_since).order_by(Job.id)
+    )
+    return list(session.scalars(query))
 
 
 def report_progress(session: Session, *, job_id: int, progress: float, message: str) -> bool:

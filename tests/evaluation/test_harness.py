@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
-from service.evaluation.runner import EvalConfig, run_evaluation
+from service.evaluation.runner import EvalConfig, EvalResult, run_evaluation
 from tests.conftest import DATA_DIR, TEST_LONG_SIDE, TEST_MAX_KEYPOINTS
 
 PLACES = 20
@@ -64,24 +65,54 @@ def test_service_path_and_ablation_path_agree_and_the_branches_are_real(slice_ru
     assert by_name["seqslam-sad"].recall[5] >= 0.5
 
 
+def rerun_from_cache(config: EvalConfig, folder: str, **changes: object) -> EvalResult:
+    """The slice again, DISK at alpha 0.7 only, its CNN outputs read from the first run's cache."""
+    return run_evaluation(
+        replace(
+            config,
+            output=config.output / folder,
+            cache_dir=config.output / "cache",
+            extractors=("disk",),
+            baselines=(),
+            alphas=(0.7,),
+            **changes,  # type: ignore[arg-type]
+        )
+    )
+
+
 @pytest.mark.slow
 def test_a_second_run_reads_the_feature_cache(slice_run) -> None:  # type: ignore[no-untyped-def]
     config, first = slice_run
-    second = run_evaluation(
-        EvalConfig(
-            **{
-                **config.__dict__,
-                "output": config.output / "again",
-                "cache_dir": config.output / "cache",
-                "extractors": ("disk",),
-                "baselines": (),
-                "alphas": (0.7,),
-            }
-        )
-    )
+    second = rerun_from_cache(config, "again")
     (again,) = second.methods
     assert again.details["features_from_cache"] is True
     assert (again.ranking.indices == first.methods[0].ranking.indices).all()
+
+
+@pytest.mark.slow
+def test_retrained_rows_train_on_shots_and_test_on_the_other_queries(slice_run) -> None:  # type: ignore[no-untyped-def]
+    config, first = slice_run
+    result = rerun_from_cache(config, "retrained", retrain_shots=(1, 3))
+    rows = {(r.protocol, r.shots): r for r in result.retraining}
+    assert sorted(rows) == [("map", 1), ("map", 3), ("revisit", 1), ("revisit", 3)]
+    queries = len(first.methods[0].ranking.indices)
+    submaps = PLACES // config.submap_size
+    for (protocol, shots), row in rows.items():
+        revisit_shots = 0 if protocol == "map" else queries - row.test_queries
+        # map protocol: every query is a test query; revisit: K per submap are training shots
+        assert revisit_shots == (0 if protocol == "map" else shots * submaps)
+        assert row.train_frames == shots * submaps + revisit_shots
+        assert row.after.query_ms["n"] == row.test_queries == len(row.after.ranking.indices)
+        assert row.epochs_run >= 1 and 0 <= row.best_epoch <= row.epochs_run
+        assert 0.0 <= row.classifier_submap_accuracy <= 1.0
+        for method in (row.before, row.after):
+            assert 0.0 <= method.recall[1] <= method.recall[5] <= 1.0
+    # "before" is the untrained service ranking restricted to the same test queries
+    assert rows[("map", 1)].before.recall == first.methods[0].recall
+    report = json.loads((config.output / "retrained" / "report.json").read_text())
+    assert [r["protocol"] for r in report["retraining"]] == ["map", "map", "revisit", "revisit"]
+    assert "retrained-revisit-k3" in [m["name"] for m in report["methods"]]
+    assert "## Retraining" in (config.output / "retrained" / "report.md").read_text()
 
 
 @pytest.mark.slow
@@ -105,6 +136,10 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "0,1",
         "--baselines",
         "seqslam-sad",
+        "--retrain-shots",
+        "1",
+        "--retrain-protocols",
+        "map",
     ]
     assert main(argv) == 0
     printed = capsys.readouterr().out
@@ -115,5 +150,6 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "loopnet-xfeat",
         "xfeat-local-only",
         "global-only",
+        "retrained-map-k1",
         "seqslam-sad",
     ]

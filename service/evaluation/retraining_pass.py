@@ -1,0 +1,220 @@
+"""Retrained LoopNet in the evaluation: the heads trained few-shot on the stored vectors.
+
+The same stored (D, R) vectors as the untrained rows go through :func:`train_heads` (the
+retraining job's own code, with the job's default parameters) and are ranked again. Two
+protocols, both with K shots per submap and test queries that no training step has seen:
+
+- ``map``: the shots are reference (map) frames only. This is what a retraining job does on
+  an atlas before the robot comes back; every query is a test query.
+- ``revisit``: the paper's few-shot protocol. Besides K map shots, K frames per submap from the
+  *query* condition are labelled with their submap (in the service: revisits confirmed as loop
+  closures and inserted into the submap, e.g. through ``observe``); the model is trained on
+  both, and tested on the remaining queries only. Validation (best epoch, early stopping) uses
+  map frames only.
+
+Rankings are over the reference frames only. The untrained rows are re-scored on the same test
+queries, so each "before -> after" pair compares like with like.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from service.evaluation.datasets import Dataset
+from service.evaluation.metrics import Ranking, rank_by_similarity
+from service.evaluation.protocol import MethodResult, evaluate_ranking
+from service.evaluation.service_pass import PassResult
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.pipeline import embed_vectors
+from service.ml.training import TrainingConfig, TrainingData, split_shots, train_heads
+
+PROTOCOLS = ("map", "revisit")
+
+
+@dataclass
+class RetrainingRow:
+    """One protocol and K: the untrained and the retrained method on the same test queries."""
+
+    protocol: str
+    shots: int
+    train_frames: int
+    test_queries: int
+    before: MethodResult
+    after: MethodResult
+    classifier_submap_accuracy: float
+    train_seconds: float
+    epochs_run: int
+    best_epoch: int
+
+    def row(self) -> dict[str, Any]:
+        return {
+            "protocol": self.protocol,
+            "shots": self.shots,
+            "train_frames": self.train_frames,
+            "test_queries": self.test_queries,
+            "before": _summary(self.before),
+            "after": _summary(self.after),
+            "classifier_submap_accuracy": self.classifier_submap_accuracy,
+            "train_seconds": self.train_seconds,
+            "epochs_run": self.epochs_run,
+            "best_epoch": self.best_epoch,
+        }
+
+
+def _summary(method: MethodResult) -> dict[str, Any]:
+    return {k: v for k, v in method.row().items() if k not in ("pr_curve", "details")}
+
+
+def query_submaps(dataset: Dataset, submap_of: Sequence[int]) -> np.ndarray:
+    """The submap each query revisits (its middle right reference's), -1 when unanswerable."""
+    labels = np.full(len(dataset.queries), -1, dtype=np.int64)
+    for i, query in enumerate(dataset.queries):
+        if query.positives:
+            positives = sorted(query.positives)
+            labels[i] = submap_of[positives[len(positives) // 2]]
+    return labels
+
+
+def classifier_accuracy(
+    heads: LoopNetHeads,
+    queries: tuple[np.ndarray, np.ndarray],
+    dataset: Dataset,
+    submap_of: Sequence[int],
+) -> float:
+    """Share of answerable queries whose predicted submap (classification head) holds a right
+    reference: the paper's submap accuracy, from the classifier rather than the nearest frame."""
+    answerable = [i for i, q in enumerate(dataset.queries) if q.positives]
+    if not answerable or heads.classifier is None:
+        return float("nan")
+    with torch.inference_mode():
+        logits = heads.classify(torch.from_numpy(queries[0]), torch.from_numpy(queries[1]))
+    predicted = np.asarray(heads.class_labels)[logits.argmax(dim=1).numpy()]
+    submaps = np.asarray(submap_of)
+    right = [
+        bool((submaps[sorted(dataset.queries[i].positives)] == predicted[i]).any())
+        for i in answerable
+    ]
+    return float(np.mean(right))
+
+
+def _subset(dataset: Dataset, keep: np.ndarray) -> Dataset:
+    return replace(dataset, queries=[dataset.queries[i] for i in keep])
+
+
+def _rows(ranking: Ranking, keep: np.ndarray) -> Ranking:
+    return Ranking(ranking.indices[keep], ranking.scores[keep])
+
+
+def retraining_rows(
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    result: PassResult,
+    untrained: MethodResult,
+    *,
+    shots: Sequence[int],
+    protocols: Sequence[str] = PROTOCOLS,
+    k: int = 10,
+    extractor_label: str = "DISK",
+) -> list[RetrainingRow]:
+    """Train and evaluate one retrained model per (protocol, K)."""
+    unknown = set(protocols) - set(PROTOCOLS)
+    if unknown:
+        raise ValueError(f"unknown retraining protocol(s) {sorted(unknown)}; use {PROTOCOLS}")
+    ref_local, ref_global = result.reference_vectors
+    query_local, query_global = result.query_vectors
+    ref_submaps = np.asarray(submap_of, dtype=np.int64)
+    n_refs = len(ref_submaps)
+    revisited = query_submaps(dataset, submap_of)
+    base = HeadsConfig(
+        local_dim=ref_local.shape[1], global_dim=ref_global.shape[1], alpha=result.preset.alpha
+    )
+    extraction_ms = np.add.reduce(
+        [
+            np.asarray(result.stage_ms[s][n_refs:])
+            for s in ("decode", "local_features", "global_features")
+        ]
+    )
+    rows: list[RetrainingRow] = []
+    for protocol in protocols:
+        for k_shots in shots:
+            map_shots, _ = split_shots(ref_submaps, k_shots)
+            if protocol == "map":
+                query_shots = np.zeros(0, dtype=np.int64)
+            else:
+                answerable = np.flatnonzero(revisited >= 0)
+                picked, _ = split_shots(revisited[answerable], k_shots)
+                query_shots = answerable[picked]
+            test = np.setdiff1d(np.arange(len(dataset.queries)), query_shots)
+            data = TrainingData(
+                local=np.concatenate([ref_local, query_local[query_shots]]),
+                global_=np.concatenate([ref_global, query_global[query_shots]]),
+                submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
+                frame_ids=np.arange(n_refs + len(query_shots)),
+            )
+            config = TrainingConfig(shots=k_shots)
+            trained = train_heads(
+                data,
+                base,
+                config,
+                shot_idx=np.concatenate([map_shots, n_refs + np.arange(len(query_shots))]),
+            )
+            heads = trained.heads
+            start = time.perf_counter()
+            references = embed_vectors(heads, ref_local, ref_global)
+            test_vectors = (query_local[test], query_global[test])
+            ranking = rank_by_similarity(embed_vectors(heads, *test_vectors) @ references.T, k)
+            per_query = (time.perf_counter() - start) * 1000.0 / max(len(test), 1)
+            subset = _subset(dataset, test)
+            name = f"retrained-{protocol}-k{k_shots}"
+            label = f"LoopNet {extractor_label} retrained, {k_shots} " + (
+                "map shots/submap" if protocol == "map" else "map + revisit shots/submap"
+            )
+            after = evaluate_ranking(
+                name,
+                label,
+                "retrained",
+                ranking,
+                subset,
+                submap_of,
+                query_ms=extraction_ms[test] + per_query,
+                details={
+                    "protocol": protocol,
+                    "shots_per_submap": k_shots,
+                    "training": {
+                        key: trained.metrics[key]
+                        for key in ("epochs_run", "best_epoch", "train_seconds", "shots")
+                    },
+                    "training_config": trained.metrics["config"],
+                },
+            )
+            before = evaluate_ranking(
+                f"untrained-{protocol}-k{k_shots}",
+                untrained.label,
+                "loopnet",
+                _rows(untrained.ranking, test),
+                subset,
+                submap_of,
+            )
+            rows.append(
+                RetrainingRow(
+                    protocol=protocol,
+                    shots=k_shots,
+                    train_frames=int(len(map_shots) + len(query_shots)),
+                    test_queries=int(len(test)),
+                    before=before,
+                    after=after,
+                    classifier_submap_accuracy=classifier_accuracy(
+                        heads, test_vectors, subset, submap_of
+                    ),
+                    train_seconds=float(trained.metrics["train_seconds"]),
+                    epochs_run=int(trained.metrics["epochs_run"]),
+                    best_epoch=int(trained.metrics["best_epoch"]),
+                )
+            )
+    return rows

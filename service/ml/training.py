@@ -94,15 +94,19 @@ ProgressCallback = Callable[[float, str], None]
 def split_shots(submaps: np.ndarray, shots: int) -> tuple[np.ndarray, np.ndarray]:
     """Indices of K shots per submap (spread evenly over its frames) and of the rest.
 
-    Frames are taken in stored order (ingest order), so the shots cover each submap's span.
+    Frames are taken in stored order (ingest order), so the shots cover each submap's span. A
+    submap of two or more frames always keeps one out of the shots: without any validation
+    frame, early stopping and best-epoch keeping have nothing to judge by, and a run over all
+    epochs overfits the shots (measured: Recall@1 0.825 -> 0.620 on Gardens Point).
     """
     train: list[int] = []
     for submap in np.unique(submaps):
         members = np.flatnonzero(submaps == submap)
-        if len(members) <= shots:
+        take = min(shots, max(len(members) - 1, 1))
+        if len(members) <= take:
             train.extend(members.tolist())
         else:
-            picks = np.linspace(0, len(members) - 1, shots).round().astype(int)
+            picks = np.linspace(0, len(members) - 1, take).round().astype(int)
             train.extend(members[np.unique(picks)].tolist())
     train_idx = np.array(sorted(train), dtype=np.int64)
     val_idx = np.setdiff1d(np.arange(len(submaps)), train_idx)

@@ -40,10 +40,11 @@ def clustered(
 
 
 def test_split_takes_k_shots_spread_over_each_submap() -> None:
-    submaps = np.array([1] * 10 + [2] * 3)
+    submaps = np.array([1] * 10 + [2] * 3 + [3])
     train, val = split_shots(submaps, 3)
-    assert train.tolist() == [0, 4, 9, 10, 11, 12]
-    assert sorted(train.tolist() + val.tolist()) == list(range(13))
+    # submap 2 has only 3 frames: one stays out for validation; a lone frame is a shot
+    assert train.tolist() == [0, 4, 9, 10, 12, 13]
+    assert sorted(train.tolist() + val.tolist()) == list(range(14))
 
 
 def test_contrastive_loss_known_values() -> None:

@@ -116,6 +116,13 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
     ev.add_argument("--limit", type=int, help="only the first N reference frames (a quick slice)")
     ev.add_argument("--cache-dir", type=Path, help="feature cache (default OUT/cache)")
     ev.add_argument("--examples", type=int, default=6, help="example queries in the strip")
+    ev.add_argument(
+        "--verify",
+        default="",
+        help="comma-separated matchers (mnn, lightglue): add geometric-verification rows",
+    )
+    ev.add_argument("--verify-top", type=int, default=5, help="candidates verified per query")
+    ev.add_argument("--query-stride", type=int, default=1, help="keep every n-th query only")
     ev.set_defaults(func=cmd_eval)
 
 
@@ -141,6 +148,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         limit=args.limit,
         cache_dir=args.cache_dir,
         examples=args.examples,
+        verify=_csv_list(str, args.verify),
+        verify_top=args.verify_top,
+        query_stride=args.query_stride,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

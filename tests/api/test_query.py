@@ -50,7 +50,7 @@ def test_query_answer_shape_and_timings(client: TestClient, atlas_of_five: list[
         "total",
     }
     assert body["verification"]["enabled"] is True
-    assert body["verification"]["verified_candidates"] == 3
+    assert body["verification"]["verified_candidates"] == 5  # top 5 verified, k=3 returned
     assert body["predicted_submap"]["available"] is False
     assert "no trained classification head" in body["predicted_submap"]["reason"]
 

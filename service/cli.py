@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     query.add_argument("image", type=Path)
     query.add_argument("--atlas", required=True)
     query.add_argument("-k", type=int, default=5)
-    query.add_argument("--robot", help="only match frames of this robot")
+    query.add_argument("--robot", help="the robot asking (its recent frames never match)")
     query.add_argument("--url", default=DEFAULT_URL)
     query.set_defaults(func=cmd_query)
 

@@ -1,5 +1,6 @@
 """Per-stage latency of ingest and query: decode, DISK at several long sides, backbone, heads,
-search, database write. Prints medians (and p90) over repeated runs on one real frame.
+search, geometric verification of one candidate (MNN and LightGlue matching, RANSAC for F and
+for E + pose; DISK at 512 px, day query vs its night reference), database write. Prints medians (and p90) over repeated runs on one real frame.
 
     python benchmarks/stage_latency.py --image ../shared/data/gardenspoint_first10/query/0.jpg
 
@@ -24,10 +25,14 @@ from service.errors import WeightsUnavailable
 from service.index import AtlasIndex
 from service.ml.aggregation import aggregate_descriptors
 from service.ml.backbones import BACKBONES, BackboneConfig, GlobalBackbone, build_backbone
+from service.ml.features import LocalFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
+from service.ml.matching import build_matcher
 from service.ml.pipeline import embed_vectors
+from service.ml.two_view import camera_matrix, estimate_two_view
+from service.verification import VerificationConfig, Verifier, View
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
@@ -46,6 +51,45 @@ def report(name: str, samples: list[float]) -> None:
     print(
         f"| {name:<38} | {statistics.median(samples):>10.2f} | {p90:>10.2f} | {len(samples):>3} |"
     )
+
+
+def verification_latency(image: Path, local: LocalFeatures, repeats: int) -> None:
+    """Verification of one candidate: the query frame against its night counterpart (same
+    place), matched by MNN and LightGlue, then RANSAC (fundamental; essential with intrinsics)."""
+    night_path = image.parent.parent / "ref" / image.name
+    night_rgb = decode_image(night_path.read_bytes())
+    day_rgb = decode_image(image.read_bytes())
+    extractor = build_local_extractor(LocalExtractorConfig(long_side=512, max_keypoints=1024))
+    a, b = extractor.extract(day_rgb), extractor.extract(night_rgb)
+    size_a, size_b = (day_rgb.shape[1], day_rgb.shape[0]), (night_rgb.shape[1], night_rgb.shape[0])
+    k_a = camera_matrix(0.8 * size_a[0], 0.8 * size_a[0], size_a[0] / 2, size_a[1] / 2)
+    k_b = camera_matrix(0.8 * size_b[0], 0.8 * size_b[0], size_b[0] / 2, size_b[1] / 2)
+    for name in ("mnn", "lightglue"):
+        try:
+            matcher = build_matcher(name)
+        except WeightsUnavailable as exc:
+            print(f"| {name}: skipped ({exc})")
+            continue
+        matches = matcher.match(a, size_a, b, size_b)
+        report(
+            f"match {name} ({a.count}x{b.count} kp, {matches.count} m)",
+            timed(partial(matcher.match, a, size_a, b, size_b), repeats),
+        )
+        pa, pb = a.keypoints[matches.pairs[:, 0]], b.keypoints[matches.pairs[:, 1]]
+        fundamental = estimate_two_view(pa, pb)
+        report(
+            f"RANSAC F on {name} ({fundamental.inliers} inl)",
+            timed(partial(estimate_two_view, pa, pb), repeats),
+        )
+        report(
+            f"RANSAC E + pose on {name}",
+            timed(partial(estimate_two_view, pa, pb, k_a, k_b), repeats),
+        )
+        verifier = Verifier(VerificationConfig(matcher=name), matcher)
+        report(
+            f"verify 1 candidate, {name} (match+RANSAC)",
+            timed(partial(verifier.verify, View(a, size_a), View(b, size_b)), repeats),
+        )
 
 
 def main() -> None:
@@ -128,6 +172,8 @@ def main() -> None:
         f"search k=5, exact, {args.index_size} frames",
         timed(lambda: index.search(query, 5), args.repeats * 3),
     )
+
+    verification_latency(args.image, local, args.repeats)
 
     from scratch_atlas import scratch_atlas
 

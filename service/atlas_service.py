@@ -30,14 +30,31 @@ from service.index_builder import add_stored_frames
 from service.ml.features import FrameFeatures
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
+from service.ml.matching import resolve_matcher_name
 from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.ml.two_view import RansacConfig
+from service.query_filters import QueryFilter, resolve
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.feature_store import load_local_features
 from service.storage.models import Atlas, Frame, ModelVersion, Submap
+from service.verification import (
+    RelativePose,
+    Verification,
+    VerificationConfig,
+    Verifier,
+    View,
+    decide,
+    default_min_inliers,
+    rerank,
+)
 
 log = logging.getLogger(__name__)
 
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+# Frames searched per query beyond k, so the margin finds the best other place even when the
+# top k all lie in the match's submap.
+MARGIN_POOL = 32
 
 
 @dataclass
@@ -58,6 +75,20 @@ class Candidate:
     submap: str
     robot_id: str
     similarity: float
+    inliers: int | None = None
+    inlier_ratio: float | None = None
+    verified: bool = False
+    relative_pose: RelativePose | None = None
+
+
+@dataclass
+class VerificationSummary:
+    """How the candidates of an answer were verified."""
+
+    enabled: bool
+    matcher: str | None = None
+    verified_candidates: int = 0
+    min_inliers: int | None = None
 
 
 @dataclass
@@ -79,6 +110,10 @@ class QueryResult:
     predicted_submap: SubmapGuess
     keypoints: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+    margin: float | None = None
+    verification: VerificationSummary = field(
+        default_factory=lambda: VerificationSummary(enabled=False)
+    )
 
 
 def validate_name(kind: str, name: str) -> str:
@@ -106,6 +141,15 @@ class AtlasService:
         self._atlas_locks: dict[int, threading.RLock] = {}
         # One frame through the CNNs at a time: torch already uses every core per frame.
         self._inference_lock = threading.Lock()
+        matcher = resolve_matcher_name(settings.matcher, pipeline.preset.local.name)
+        self.verification_config = VerificationConfig(
+            matcher=matcher,
+            top=settings.verify_top,
+            min_inliers=settings.verify_min_inliers or default_min_inliers(matcher),
+            ratio=settings.verify_ratio,
+            ransac=RansacConfig(threshold_px=settings.ransac_threshold_px),
+        )
+        self._verifier: Verifier | None = None  # built on first use (LightGlue loads weights)
 
     # ----- atlases -----------------------------------------------------------------------
 
@@ -383,18 +427,76 @@ class AtlasService:
 
     # ----- queries -----------------------------------------------------------------------
 
+    def query_filter(
+        self,
+        *,
+        robot_id: str | None = None,
+        robots: str = "all",
+        submap: str | None = None,
+        since: float | None = None,
+        until: float | None = None,
+        timestamp: float | None = None,
+        exclude_recent_frames: int | None = None,
+        exclude_recent_seconds: float | None = None,
+    ) -> QueryFilter:
+        """A validated :class:`QueryFilter`, with the settings' recent-frame exclusion unless
+        the request overrides it."""
+        if robot_id is not None:
+            validate_name("robot", robot_id)
+        if submap is not None:
+            validate_name("submap", submap)
+        query_filter = QueryFilter(
+            robot_id=robot_id,
+            robots=robots,
+            submap=submap,
+            since=since,
+            until=until,
+            timestamp=timestamp,
+            exclude_recent_frames=(
+                self.settings.exclude_recent_frames
+                if exclude_recent_frames is None
+                else exclude_recent_frames
+            ),
+            exclude_recent_seconds=(
+                self.settings.exclude_recent_seconds
+                if exclude_recent_seconds is None
+                else exclude_recent_seconds
+            ),
+        )
+        query_filter.validate()
+        return query_filter
+
     def query(
-        self, *, atlas_name: str, image_bytes: bytes, k: int = 5, robot_id: str | None = None
+        self,
+        *,
+        atlas_name: str,
+        image_bytes: bytes,
+        k: int = 5,
+        robot_id: str | None = None,
+        query_filter: QueryFilter | None = None,
+        intrinsics: Intrinsics | None = None,
     ) -> QueryResult:
-        """The frames of the atlas most similar to an image, and the loop-closure decision."""
+        """The frames of the atlas most similar to an image, verified, and the loop-closure
+        decision. ``robot_id`` is the robot asking (its recent frames never match)."""
         total_start = time.perf_counter()
-        self._validate_query_fields(k, robot_id)
+        query_filter = query_filter or self.query_filter(robot_id=robot_id)
+        self._validate_query_fields(k)
         with self.sessions() as session:
             self._check_signature(repo.get_atlas(session, name=atlas_name))
         features, decode_ms = self.extract(image_bytes)
         result = self.query_features(
-            atlas_name=atlas_name, features=features, k=k, robot_id=robot_id
+            atlas_name=atlas_name,
+            features=features,
+            k=k,
+            query_filter=query_filter,
+            intrinsics=intrinsics,
         )
+        return self._with_extraction_timings(result, features, decode_ms, total_start)
+
+    @staticmethod
+    def _with_extraction_timings(
+        result: QueryResult, features: FrameFeatures, decode_ms: float, total_start: float
+    ) -> QueryResult:
         result.timings_ms = {
             "decode": round(decode_ms, 3),
             **{name: round(ms, 3) for name, ms in features.timings_ms.items()},
@@ -403,16 +505,73 @@ class AtlasService:
         }
         return result
 
+    def observe(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+        k: int = 5,
+        query_filter: QueryFilter | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """Online SLAM: query with a robot's new keyframe, then insert it, in one call.
+
+        Everything is validated before the CNNs run; the query happens before the insert, so
+        the new frame is never its own match; the insert is one transaction, so a failure
+        writes nothing.
+        """
+        total_start = time.perf_counter()
+        self._validate_frame_fields(robot_id, timestamp)
+        self._validate_query_fields(k)
+        query_filter = query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp)
+        if query_filter.robot_id != robot_id:
+            raise InvalidInput("an observation's filter must be for the observing robot")
+        with self.sessions() as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            self._check_signature(atlas)
+            repo.get_submap(session, atlas=atlas, name=submap_name)
+        features, decode_ms = self.extract(image_bytes)
+        result = self.query_features(
+            atlas_name=atlas_name,
+            features=features,
+            k=k,
+            query_filter=query_filter,
+            intrinsics=intrinsics,
+        )
+        frame = self.ingest_features(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+        return self._with_extraction_timings(result, features, decode_ms, total_start), frame
+
     def query_features(
-        self, *, atlas_name: str, features: FrameFeatures, k: int = 5, robot_id: str | None = None
+        self,
+        *,
+        atlas_name: str,
+        features: FrameFeatures,
+        k: int = 5,
+        robot_id: str | None = None,
+        query_filter: QueryFilter | None = None,
+        intrinsics: Intrinsics | None = None,
     ) -> QueryResult:
-        """Search with already extracted features (by :meth:`extract`); timings cover the
-        heads and the search only."""
-        self._validate_query_fields(k, robot_id)
+        """Search with already extracted features (by :meth:`extract`), verify the best
+        candidates; timings cover the heads, the search and the verification."""
+        self._validate_query_fields(k)
+        query_filter = query_filter or self.query_filter(robot_id=robot_id)
         with self.sessions() as session:
             atlas = repo.get_atlas(session, name=atlas_name)
             self._check_signature(atlas)
             atlas_id = atlas.id
+            selection = resolve(session, atlas, query_filter)
         state = self.loaded(atlas_id)
         timings: dict[str, float] = {}
 
@@ -424,8 +583,12 @@ class AtlasService:
         )
         timings["heads"] = (time.perf_counter() - start) * 1000.0
 
+        config = self.verification_config
         start = time.perf_counter()
-        hits = state.index.search(embedding, k, robot_id=robot_id)
+        pool = max(k, config.top, MARGIN_POOL)
+        hits = state.index.search(
+            embedding, pool, include=selection.include, exclude=selection.exclude
+        )
         timings["search"] = (time.perf_counter() - start) * 1000.0
 
         with self.sessions() as session:
@@ -436,6 +599,24 @@ class AtlasService:
             for h in hits
             if (f := frames.get(h.frame_id)) is not None
         ]
+        verifications: dict[int, Verification] = {}
+        if config.top > 0 and candidates:
+            start = time.perf_counter()
+            checked = candidates[: config.top]
+            verifications = self._verify(
+                View(features.local, features.image_size, intrinsics),
+                [(c.frame_id, frames[c.frame_id]) for c in checked],
+            )
+            for candidate in checked:
+                found = verifications.get(candidate.frame_id)
+                if found is not None:
+                    candidate.inliers = found.inliers
+                    candidate.inlier_ratio = round(found.inlier_ratio, 4)
+                    candidate.verified = found.verified
+                    candidate.relative_pose = found.relative_pose
+            order = rerank([c.similarity for c in candidates], [c.inliers for c in candidates])
+            candidates = [candidates[i] for i in order]
+            timings["verification"] = (time.perf_counter() - start) * 1000.0
         if prediction is None:
             guess = SubmapGuess(
                 available=False,
@@ -448,20 +629,68 @@ class AtlasService:
             guess = SubmapGuess(True, names.get(prediction.submap_id), prediction.probability)
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
+        loop_closure = decide(
+            match.similarity if match else None,
+            verifications.get(match.frame_id) if match else None,
+            threshold=threshold,
+            verify=config.top > 0,
+        )
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
             match=match,
-            candidates=candidates,
-            loop_closure=match is not None and match.similarity >= threshold,
+            candidates=candidates[:k],
+            loop_closure=loop_closure,
             threshold=threshold,
             predicted_submap=guess,
             keypoints=features.local.count,
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
+            margin=place_margin(candidates),
+            verification=VerificationSummary(
+                enabled=config.top > 0,
+                matcher=config.matcher if config.top > 0 else None,
+                verified_candidates=len(verifications),
+                min_inliers=config.min_inliers if config.top > 0 else None,
+            ),
         )
 
-    def _validate_query_fields(self, k: int, robot_id: str | None) -> None:
+    @property
+    def verifier(self) -> Verifier:
+        if self._verifier is None:
+            self._verifier = Verifier(self.verification_config)
+        return self._verifier
+
+    def _verify(self, query: View, frames: list[tuple[int, Frame]]) -> dict[int, Verification]:
+        """Verify the query against stored frames, reading their keypoints from the store."""
+        with self.sessions() as session:
+            stored = load_local_features(session, [frame_id for frame_id, _ in frames])
+        verifier = self.verifier
+        found = {}
+        with self._inference_lock:  # matching and RANSAC use torch's threads too
+            for frame_id, frame in frames:
+                local = stored.get(frame_id)
+                if local is None:
+                    continue  # deleted meanwhile
+                intrinsics = (
+                    Intrinsics(frame.fx, frame.fy, frame.cx, frame.cy)  # type: ignore[arg-type]
+                    if frame.fx is not None
+                    else None
+                )
+                view = View(local, (frame.width, frame.height), intrinsics)
+                found[frame_id] = verifier.verify(query, view)
+        return found
+
+    def _validate_query_fields(self, k: int) -> None:
         if not 1 <= k <= self.settings.max_k:
             raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
-        if robot_id is not None:
-            validate_name("robot", robot_id)
+
+
+def place_margin(candidates: list[Candidate]) -> float | None:
+    """Similarity of the match minus that of the best candidate from another place, a place
+    being a submap: small or negative means a look-alike elsewhere competes with the match.
+    None when every searched frame lies in the match's submap."""
+    if not candidates:
+        return None
+    best = candidates[0]
+    others = [c.similarity for c in candidates[1:] if c.submap != best.submap]
+    return round(best.similarity - max(others), 6) if others else None

@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     query.add_argument("image", type=Path)
     query.add_argument("--atlas", required=True)
     query.add_argument("-k", type=int, default=5)
-    query.add_argument("--robot", help="only match frames of this robot")
+    query.add_argument("--robot", help="the robot asking (its recent frames never match)")
     query.add_argument("--url", default=DEFAULT_URL)
     query.set_defaults(func=cmd_query)
 
@@ -126,6 +126,13 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
         default="map,revisit",
         help="map (reference shots only) and/or revisit (the paper's: also query-condition shots)",
     )
+    ev.add_argument(
+        "--verify",
+        default="",
+        help="comma-separated matchers (mnn, lightglue): add geometric-verification rows",
+    )
+    ev.add_argument("--verify-top", type=int, default=5, help="candidates verified per query")
+    ev.add_argument("--query-stride", type=int, default=1, help="keep every n-th query only")
     ev.set_defaults(func=cmd_eval)
 
 
@@ -153,6 +160,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         examples=args.examples,
         retrain_shots=_csv_list(int, args.retrain_shots),
         retrain_protocols=_csv_list(str, args.retrain_protocols),
+        verify=_csv_list(str, args.verify),
+        verify_top=args.verify_top,
+        query_stride=args.query_stride,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

@@ -28,6 +28,31 @@ class Settings(BaseSettings):
     loop_closure_threshold: float = Field(
         0.90, ge=-1.0, le=1.0, description="Cosine similarity at or above which a match is a loop."
     )
+    matcher: str = Field(
+        "mnn",
+        description="Local-feature matcher of geometric verification: 'mnn' (mutual nearest "
+        "neighbours + ratio test, any extractor), 'lightglue' (LightGlue-DISK) or 'auto' "
+        "(LightGlue for DISK, MNN otherwise).",
+    )
+    verify_top: int = Field(
+        5, ge=0, le=100, description="Best retrieval candidates verified per query; 0: none."
+    )
+    verify_min_inliers: int | None = Field(
+        None,
+        ge=1,
+        description="RANSAC inliers at or above which a candidate is verified; default: the "
+        "matcher's own (service.verification.DEFAULT_MIN_INLIERS).",
+    )
+    verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="MNN matcher's ratio test.")
+    ransac_threshold_px: float = Field(
+        3.0, gt=0.0, description="RANSAC inlier threshold (pixels of the decoded image)."
+    )
+    exclude_recent_frames: int = Field(
+        20, ge=0, description="The asking robot's last N frames never count as a loop closure."
+    )
+    exclude_recent_seconds: float = Field(
+        30.0, ge=0.0, description="Nor do its frames taken within T seconds of the query."
+    )
     max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
     max_image_pixels: int = Field(40_000_000, ge=1024)
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")

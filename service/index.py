@@ -75,20 +75,43 @@ class AtlasIndex:
                 self._robot_of.pop(int(i), None)
             return removed
 
-    def search(self, vector: np.ndarray, k: int, robot_id: str | None = None) -> list[Hit]:
-        """The ``k`` most similar frames to one unit ``vector`` (optionally one robot's only)."""
+    def search(
+        self,
+        vector: np.ndarray,
+        k: int,
+        robot_id: str | None = None,
+        *,
+        include: np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> list[Hit]:
+        """The ``k`` most similar frames to one unit ``vector``.
+
+        Optionally only one robot's frames, only the frame ids in ``include``, and never those
+        in ``exclude``.
+        """
         query = np.ascontiguousarray(vector, dtype=np.float32).reshape(1, self.dim)
         with self._lock:
             if self.size == 0:
                 return []
             params = None
             if robot_id is not None:
-                allowed = np.array(
+                own = np.array(
                     [i for i, r in self._robot_of.items() if r == robot_id], dtype=np.int64
                 )
-                if len(allowed) == 0:
+                include = own if include is None else np.intersect1d(include, own)
+            selector: Any = None
+            if include is not None:
+                if exclude is not None and len(exclude):
+                    include = np.setdiff1d(include, exclude)
+                if len(include) == 0:
                     return []
-                params = faiss.SearchParameters(sel=faiss.IDSelectorBatch(allowed))  # type: ignore[call-arg]
+                selector = faiss.IDSelectorBatch(np.ascontiguousarray(include, np.int64))
+            elif exclude is not None and len(exclude):
+                dropped = faiss.IDSelectorBatch(np.ascontiguousarray(exclude, np.int64))
+                selector = faiss.IDSelectorNot(dropped)
+                selector.referenced = dropped  # keep the wrapped selector alive
+            if selector is not None:
+                params = faiss.SearchParameters(sel=selector)  # type: ignore[call-arg]
             k = min(k, self.size)
             similarities, ids = self._index.search(query, k, params=params)
         return [

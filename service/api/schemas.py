@@ -73,6 +73,13 @@ class FrameOut(BaseModel):
     created_at: datetime
 
 
+class RelativePoseOut(BaseModel):
+    """Pose of the query camera relative to the candidate's: ``X_candidate = R X_query + t``."""
+
+    rotation: list[float] = Field(description="Unit quaternion [w, x, y, z] of R.")
+    translation: list[float] = Field(description="Unit direction of t (two views give no scale).")
+
+
 class CandidateOut(BaseModel):
     frame_id: int
     submap: str
@@ -83,6 +90,21 @@ class CandidateOut(BaseModel):
             "in [-1, 1]; 1 means identical embeddings."
         )
     )
+    inliers: int | None = Field(
+        None, description="RANSAC inliers of the local-feature matches; null: not verified."
+    )
+    inlier_ratio: float | None = Field(None, description="Inliers / tentative matches.")
+    verified: bool = Field(False, description="Inliers reach the verification minimum.")
+    relative_pose: RelativePoseOut | None = Field(
+        None, description="From the essential matrix when both frames have intrinsics."
+    )
+
+
+class VerificationOut(BaseModel):
+    enabled: bool
+    matcher: str | None = Field(None, description="'mnn' or 'lightglue'.")
+    verified_candidates: int = Field(description="Candidates that went through RANSAC.")
+    min_inliers: int | None = None
 
 
 class SubmapPredictionOut(BaseModel):
@@ -97,14 +119,28 @@ class QueryOut(BaseModel):
     model_version: int
     match: CandidateOut | None = Field(description="The best match, or null on an empty atlas.")
     candidates: list[CandidateOut] = Field(description="The top-k frames, best first.")
-    loop_closure: bool = Field(description="Whether the best similarity reaches the threshold.")
+    loop_closure: bool = Field(
+        description="The best similarity reaches the threshold and, with verification on, the "
+        "best candidate (after re-ranking by inliers) is verified."
+    )
     threshold: float
     predicted_submap: SubmapPredictionOut
     keypoints: int = Field(description="Local keypoints found in the query image.")
     timings_ms: dict[str, float] = Field(
         description="Milliseconds per stage: decode, local_features, global_features, heads, "
-        "search, total."
+        "search, verification (all verified candidates), total."
     )
+    margin: float | None = Field(
+        None,
+        description="Similarity of the match minus that of the best frame of another submap "
+        "(another place): small or negative warns of a look-alike. Null when no other submap "
+        "was among the frames searched.",
+    )
+    verification: VerificationOut
+
+
+class ObserveOut(QueryOut):
+    frame_id: int = Field(description="Id of the frame the observation inserted.")
 
 
 class ModelVersionOut(BaseModel):

@@ -40,6 +40,11 @@ from service.evaluation.protocol import (
 )
 from service.evaluation.retraining_pass import PROTOCOLS, RetrainingRow, retraining_rows
 from service.evaluation.service_pass import PassResult, run_service_pass
+from service.evaluation.verification_pass import (
+    KeypointCache,
+    subsample_queries,
+    verification_methods,
+)
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset, resolve_preset
@@ -69,6 +74,10 @@ class EvalConfig:
         cache_dir: where extracted features are cached (None: ``output/cache``).
         retrain_shots: K values (shots per submap) of the retrained rows; empty: none.
         retrain_protocols: ``map`` and/or ``revisit`` (see ``retraining_pass``).
+        verify: matchers ("mnn", "lightglue") whose geometric verification of the first
+            extractor's ranking adds a row each (issue 5); empty: none.
+        verify_top: candidates verified per query.
+        query_stride: keep every n-th query only (bounded runs on long datasets).
     """
 
     dataset: Path
@@ -93,6 +102,9 @@ class EvalConfig:
     retrain_shots: tuple[int, ...] = ()
     retrain_protocols: tuple[str, ...] = PROTOCOLS
     command: str = ""
+    verify: tuple[str, ...] = ()
+    verify_top: int = 5
+    query_stride: int = 1
 
 
 @dataclass
@@ -296,6 +308,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     )
     if config.limit:
         dataset = dataset.head(config.limit)
+    dataset = subsample_queries(dataset, config.query_stride)
     submap_of, submap_note = assign_submaps(dataset, config.submap_size)
     output = Path(config.output)
     output.mkdir(parents=True, exist_ok=True)
@@ -314,6 +327,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     stages: dict[str, dict[str, dict[str, float]]] = {}
     skipped: dict[str, str] = {}
     first_pass: PassResult | None = None
+    first_keypoints: KeypointCache | None = None
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -328,8 +342,17 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             skipped[extractor] = str(exc)
             log.warning("skipping %s: %s", extractor, exc)
             continue
+        keypoints = None
+        if config.verify and first_pass is None:
+            keypoints = KeypointCache(output / "keypoints", pipeline.local)
         result = run_service_pass(
-            dataset, submap_of, pipeline, k=config.k, cache_dir=cache_dir, label=extractor
+            dataset,
+            submap_of,
+            pipeline,
+            k=config.k,
+            cache_dir=cache_dir,
+            label=extractor,
+            on_features=keypoints.store if keypoints is not None else None,
         )
         for method in _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
@@ -338,7 +361,8 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
-        first_pass = first_pass or result
+        if first_pass is None:
+            first_pass, first_keypoints = result, keypoints
     if first_pass is None:
         raise RuntimeError(f"no local extractor could run: {skipped}")
     methods += global_only
@@ -356,6 +380,21 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
         )
         methods += [row.after for row in retraining]
+    if config.verify and first_keypoints is not None:
+        extractor_name = first_pass.preset.local.name
+        verified, verification_stages = verification_methods(
+            dataset,
+            submap_of,
+            first_pass.ranking,
+            first_pass.query_ms,
+            matchers=config.verify,
+            top=config.verify_top,
+            cache=first_keypoints,
+            similarity_threshold=first_pass.threshold,
+            extractor_label=EXTRACTOR_LABELS.get(extractor_name, extractor_name),
+        )
+        methods += verified
+        stages.update(verification_stages)
     for name in config.baselines:
         method, baseline_stages = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k

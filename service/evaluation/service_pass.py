@@ -13,7 +13,7 @@ import hashlib
 import json
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -136,8 +136,13 @@ def run_service_pass(
     k: int,
     cache_dir: Path | None,
     label: str,
+    on_features: Callable[[Path, FrameFeatures], None] | None = None,
 ) -> PassResult:
-    """Ingest the references into a temporary atlas, query every query image, keep the vectors."""
+    """Ingest the references into a temporary atlas, query every query image, keep the vectors.
+
+    ``on_features`` sees every freshly extracted frame (the verification pass keeps its
+    keypoints, which the vector cache does not hold).
+    """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None and path.is_file() else None
     images = list(all_images(dataset))
@@ -150,7 +155,8 @@ def run_service_pass(
     indices, scores = [], []
 
     with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
-        settings = Settings(data_dir=Path(data_dir), max_k=max(k, 1))
+        # Retrieval only: geometric verification has its own pass (verification_pass.py).
+        settings = Settings(data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0)
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)
         service = runtime.service
@@ -160,6 +166,8 @@ def run_service_pass(
         frame_to_reference: dict[int, int] = {}
         frames = _frames(service, images, cached, f"{label}: {dataset.name}")
         for i, (features, decode_ms) in enumerate(frames):
+            if on_features is not None and cached is None:
+                on_features(images[i], features)
             local_vectors.append(features.local_vector)
             global_vectors.append(features.global_vector)
             keypoints.append(features.local.count)

@@ -41,6 +41,14 @@ XFEAT = WeightsFile(
     ("https://github.com/verlab/accelerated_features/raw/main/weights/xfeat.pt",),
     "XFeat checkpoint (kornia)",
 )
+LIGHTGLUE_DISK = WeightsFile(
+    "disk_lightglue_v0-1_arxiv-pth",  # kornia's cache name for cvg/LightGlue v0.1_arxiv DISK
+    (
+        "https://huggingface.co/kornia/lightglue/resolve/main/disk_lightglue.pth",
+        "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/disk_lightglue.pth",
+    ),
+    "LightGlue matcher for DISK features (cvg/LightGlue v0.1_arxiv, kornia)",
+)
 RESNET18_IMAGENET = WeightsFile(
     "resnet18-f37072fd.pth",
     ("https://download.pytorch.org/models/resnet18-f37072fd.pth",),

@@ -41,6 +41,16 @@ def local_features_of(row: FrameFeatureRow) -> LocalFeatures:
     )
 
 
+def load_local_features(session: Session, frame_ids: Sequence[int]) -> dict[int, LocalFeatures]:
+    """The stored keypoints of several frames (for verification: no re-extraction)."""
+    if not frame_ids:
+        return {}
+    rows = session.scalars(
+        select(FrameFeatureRow).where(FrameFeatureRow.frame_id.in_(list(frame_ids)))
+    )
+    return {row.frame_id: local_features_of(row) for row in rows}
+
+
 StoredVectors = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 

@@ -46,8 +46,11 @@ def test_query_answer_shape_and_timings(client: TestClient, atlas_of_five: list[
         "global_features",
         "heads",
         "search",
+        "verification",
         "total",
     }
+    assert body["verification"]["enabled"] is True
+    assert body["verification"]["verified_candidates"] == 5  # top 5 verified, k=3 returned
     assert body["predicted_submap"]["available"] is False
     assert "no trained classification head" in body["predicted_submap"]["reason"]
 
@@ -82,10 +85,15 @@ def test_similarity_is_the_cosine_of_the_embeddings(
 
 
 def test_robot_filter(client: TestClient, atlas_of_five: list[dict]) -> None:
-    body = query(client, gardens_point_day_night(0, "ref"), k="5", robot_id="r2").json()
-    assert {c["robot_id"] for c in body["candidates"]} == {"r2"}
-    assert len(body["candidates"]) == 2
-    nobody = query(client, gardens_point_day_night(0, "ref"), robot_id="nobody").json()
+    no_exclusion = {"exclude_recent_frames": "0", "exclude_recent_seconds": "0"}
+    image = gardens_point_day_night(0, "ref")
+    own = query(client, image, k="5", robot_id="r2", robots="own", **no_exclusion).json()
+    assert {c["robot_id"] for c in own["candidates"]} == {"r2"}
+    assert len(own["candidates"]) == 2
+    others = query(client, image, k="5", robot_id="r2", robots="others", **no_exclusion).json()
+    assert {c["robot_id"] for c in others["candidates"]} == {"r1"}
+    assert len(others["candidates"]) == 3
+    nobody = query(client, image, robot_id="nobody", robots="own").json()
     assert nobody["match"] is None and nobody["loop_closure"] is False
 
 

@@ -1,0 +1,189 @@
+"""Local-feature matchers behind one interface: LightGlue (DISK) and mutual nearest neighbours.
+
+A matcher takes two frames' :class:`LocalFeatures` (keypoints in decoded-image pixels, the
+layout the feature store keeps) with their image sizes and returns index pairs into them.
+``mnn`` works for any descriptor (DISK 128-d, XFeat 64-d); ``lightglue`` is LightGlue with
+the DISK weights (128-d descriptors only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from service.ml import weights
+from service.ml.features import LocalFeatures
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Tentative correspondences between two frames.
+
+    Attributes:
+        pairs: ``K x 2`` int64, (index in frame A, index in frame B).
+        scores: ``K`` float32 match confidences (higher is better).
+    """
+
+    pairs: np.ndarray
+    scores: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.pairs)
+
+    @classmethod
+    def empty(cls) -> Matches:
+        return cls(np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
+
+
+class Matcher(Protocol):
+    name: str
+
+    def match(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        b: LocalFeatures,
+        size_b: tuple[int, int],
+    ) -> Matches: ...
+
+
+class MutualNearestNeighbours:
+    """Mutual nearest neighbours on cosine similarity with Lowe's ratio test.
+
+    A pair (i, j) is kept when j is i's nearest neighbour and i is j's, and the distance to j is
+    below ``ratio`` times the distance to i's second-nearest neighbour (L2 distance of unit
+    descriptors). Works for every descriptor size; descriptors are re-normalised (the store
+    keeps them as float16).
+    """
+
+    name = "mnn"
+
+    def __init__(self, ratio: float = 0.9) -> None:
+        if not 0.0 < ratio <= 1.0:
+            raise ValueError(f"ratio must be in (0, 1], got {ratio}")
+        self.ratio = ratio
+
+    def match(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        b: LocalFeatures,
+        size_b: tuple[int, int],
+    ) -> Matches:
+        if a.count == 0 or b.count == 0:
+            return Matches.empty()
+        if a.descriptors.shape[1] != b.descriptors.shape[1]:
+            raise ValueError(
+                f"descriptor sizes differ: {a.descriptors.shape[1]} vs {b.descriptors.shape[1]}"
+            )
+        da = _unit(a.descriptors)
+        db = _unit(b.descriptors)
+        similarity = da @ db.T  # M x N
+        nearest_ab = similarity.argmax(axis=1)
+        nearest_ba = similarity.argmax(axis=0)
+        rows = np.arange(len(da))
+        mutual = nearest_ba[nearest_ab] == rows
+        best = similarity[rows, nearest_ab]
+        if b.count > 1:
+            second = np.partition(similarity, -2, axis=1)[:, -2]
+            distance = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+            second_distance = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+            passes = distance < self.ratio * second_distance
+        else:
+            passes = np.ones(len(da), bool)
+        keep = mutual & passes
+        pairs = np.stack([rows[keep], nearest_ab[keep]], axis=1).astype(np.int64)
+        return Matches(pairs, best[keep].astype(np.float32))
+
+
+class LightGlueMatcher:
+    """LightGlue (kornia) with the DISK weights, loaded from the weights cache only."""
+
+    name = "lightglue"
+    descriptor_dim = 128
+
+    def __init__(self, filter_threshold: float = 0.1) -> None:
+        from kornia.feature import LightGlue
+
+        # Raises WeightsUnavailable (offline, file missing) before kornia could try a download;
+        # kornia then finds the file in the same hub cache.
+        weights.ensure_weights(weights.LIGHTGLUE_DISK)
+        self.model = LightGlue("disk", filter_threshold=filter_threshold).eval()
+
+    @torch.inference_mode()
+    def match(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        b: LocalFeatures,
+        size_b: tuple[int, int],
+    ) -> Matches:
+        for features in (a, b):
+            if features.count and features.descriptors.shape[1] != self.descriptor_dim:
+                raise ValueError(
+                    f"LightGlue-DISK needs {self.descriptor_dim}-d descriptors, got "
+                    f"{features.descriptors.shape[1]}-d; use the 'mnn' matcher for this extractor"
+                )
+        if a.count < 2 or b.count < 2:
+            return Matches.empty()
+        data: dict[str, Any] = {
+            "image0": _lightglue_input(a, size_a),
+            "image1": _lightglue_input(b, size_b),
+        }
+        out = self.model(data)
+        pairs = out["matches"][0].numpy().astype(np.int64).reshape(-1, 2)
+        scores = out["scores"][0].float().numpy().astype(np.float32).reshape(-1)
+        return Matches(pairs, scores)
+
+
+def _unit(descriptors: np.ndarray) -> np.ndarray:
+    d = descriptors.astype(np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _lightglue_input(features: LocalFeatures, size: tuple[int, int]) -> dict[str, torch.Tensor]:
+    # LightGlue normalises keypoints by the image size and refuses any outside the image:
+    # clip the sub-pixel overshoot that mapping back to decoded pixels can give at the border.
+    width, height = size
+    keypoints = np.clip(features.keypoints, 0.0, [width - 1.0, height - 1.0]).astype(np.float32)
+    return {
+        "keypoints": torch.from_numpy(keypoints)[None],
+        "descriptors": torch.from_numpy(_unit(features.descriptors))[None],
+        "image_size": torch.tensor([[float(width), float(height)]]),
+    }
+
+
+MATCHERS = ("lightglue", "mnn")
+
+
+def resolve_matcher_name(name: str, extractor: str) -> str:
+    """The matcher a setting means for an extractor: ``auto`` is LightGlue for DISK, MNN else.
+
+    Raises:
+        ValueError: an unknown name, or LightGlue asked for with a non-DISK extractor.
+    """
+    if name == "auto":
+        return "lightglue" if extractor == "disk" else "mnn"
+    if name not in MATCHERS:
+        raise ValueError(f"unknown matcher {name!r}; choose one of auto, {', '.join(MATCHERS)}")
+    if name == "lightglue" and extractor != "disk":
+        raise ValueError(
+            f"the LightGlue weights here are for DISK; the {extractor!r} extractor needs "
+            "matcher 'mnn' (or 'auto')"
+        )
+    return name
+
+
+@lru_cache(maxsize=4)
+def build_matcher(name: str, ratio: float = 0.9) -> Matcher:
+    """A matcher by name, built once per process (LightGlue's weights are 45 MB)."""
+    if name == "lightglue":
+        return LightGlueMatcher()
+    if name == "mnn":
+        return MutualNearestNeighbours(ratio)
+    raise ValueError(f"unknown matcher {name!r}; choose one of {', '.join(MATCHERS)}")

@@ -39,6 +39,15 @@ class Settings(BaseSettings):
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    inference_workers: int | None = Field(
+        None, ge=1, le=256, description="Concurrent inferences; default: cores / torch threads."
+    )
+    inference_queue: int = Field(
+        16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
+    )
+    inference_wait_seconds: float = Field(
+        30.0, gt=0, description="Longest wait for an inference slot before answering 503."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 

@@ -43,9 +43,8 @@ def test_gate_admits_workers_queues_fifo_and_refuses_the_rest() -> None:
         for i in (2, 3):
             queued.append(pool.submit(hold, i))
             wait_until(lambda n=i - 1: gate.stats().waiting == n)
-        with pytest.raises(Overloaded) as refused:
-            with gate.slot():
-                pass
+        with pytest.raises(Overloaded) as refused, gate.slot():
+            pass
         assert "2 running and 2 waiting" in str(refused.value)
         assert refused.value.retry_after_s >= 1
         release.set()
@@ -61,9 +60,8 @@ def test_gate_refuses_a_waiter_after_its_timeout() -> None:
     gate = InferenceGate(workers=1, queue=1, wait_timeout_s=0.2)
     with gate.slot():
         start = time.monotonic()
-        with pytest.raises(Overloaded, match="within 0.2 s"):
-            with gate.slot():
-                pass
+        with pytest.raises(Overloaded, match="within 0.2 s"), gate.slot():
+            pass
         assert time.monotonic() - start >= 0.2
     with gate.slot():  # a refused waiter leaves no trace in the queue
         assert gate.stats().waiting == 0
@@ -74,15 +72,13 @@ def test_gate_retry_after_grows_with_the_work_ahead() -> None:
     for _ in range(3):
         with gate.slot():
             time.sleep(0.01)
-    with gate.slot(), pytest.raises(Overloaded) as refused:
-        with gate.slot():
-            pass
+    with gate.slot(), pytest.raises(Overloaded) as refused, gate.slot():
+        pass
     assert refused.value.retry_after_s == 1  # ~10 ms of work ahead rounds up to one second
     slow = InferenceGate(workers=1, queue=0, wait_timeout_s=1)
     slow._mean_s = 2.5  # as after inferences of 2.5 s each
-    with slow.slot(), pytest.raises(Overloaded) as refused:
-        with slow.slot():
-            pass
+    with slow.slot(), pytest.raises(Overloaded) as refused, slow.slot():
+        pass
     assert refused.value.retry_after_s == 3
 
 

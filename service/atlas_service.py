@@ -22,6 +22,7 @@ import torch
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import models_store
+from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
 from service.errors import Conflict, InvalidInput, NotFound
 from service.geometry import Intrinsics, Pose
@@ -139,8 +140,12 @@ class AtlasService:
         # Per atlas: held while its state is swapped and while a new frame enters its index,
         # so a frame committed around a swap always ends up in the index that is served.
         self._atlas_locks: dict[int, threading.RLock] = {}
-        # One frame through the CNNs at a time: torch already uses every core per frame.
-        self._inference_lock = threading.Lock()
+        # Decode + CNNs behind a bounded gate: beyond its slots and queue, Overloaded (503).
+        self.inference = InferenceGate(
+            settings.inference_workers or default_workers(settings.torch_threads),
+            settings.inference_queue,
+            settings.inference_wait_seconds,
+        )
         matcher = resolve_matcher_name(settings.matcher, pipeline.preset.local.name)
         self.verification_config = VerificationConfig(
             matcher=matcher,
@@ -340,11 +345,12 @@ class AtlasService:
             )
 
     def extract(self, image_bytes: bytes) -> tuple[FrameFeatures, float]:
-        """Decode and run the CNNs; returns the features and the decode time in ms."""
-        start = time.perf_counter()
-        rgb = decode_image(image_bytes, self.settings.image_limits)
-        decode_ms = (time.perf_counter() - start) * 1000.0
-        with self._inference_lock:
+        """Decode and run the CNNs in one of the gate's slots; returns the features and the
+        decode time in ms. Raises Overloaded when every slot is busy and the queue is full."""
+        with self.inference.slot():
+            start = time.perf_counter()
+            rgb = decode_image(image_bytes, self.settings.image_limits)
+            decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
         return features, decode_ms
 
@@ -666,7 +672,7 @@ class AtlasService:
             stored = load_local_features(session, [frame_id for frame_id, _ in frames])
         verifier = self.verifier
         found = {}
-        with self._inference_lock:  # matching and RANSAC use torch's threads too
+        with self.inference.slot():  # matching and RANSAC are inference work too (torch threads)
             for frame_id, frame in frames:
                 local = stored.get(frame_id)
                 if local is None:

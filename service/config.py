@@ -75,6 +75,15 @@ class Settings(BaseSettings):
     job_sweep_seconds: float = Field(
         60.0, gt=0, description="How often each worker looks for lost or orphaned jobs."
     )
+    inference_workers: int | None = Field(
+        None, ge=1, le=256, description="Concurrent inferences; default: cores / torch threads."
+    )
+    inference_queue: int = Field(
+        16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
+    )
+    inference_wait_seconds: float = Field(
+        30.0, gt=0, description="Longest wait for an inference slot before answering 503."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 

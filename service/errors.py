@@ -33,3 +33,11 @@ class WeightsUnavailable(LoopNetError):
 
 class NotReady(LoopNetError):
     """The service is still starting (models or indexes not loaded yet)."""
+
+
+class Overloaded(LoopNetError):
+    """Inference is saturated (every slot busy, the wait queue full): retry after a while."""
+
+    def __init__(self, message: str, *, retry_after_s: int = 1) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s

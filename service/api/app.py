@@ -5,11 +5,13 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
 from service.api.errors import install_error_handlers
 from service.api.routes import atlases, frames, health, jobs, queries
+from service.concurrency import default_workers, request_threads
 from service.config import Settings
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
@@ -36,6 +38,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         runtime.start(background=background_load)
+        _size_thread_pool(runtime.settings)
         try:
             yield
         finally:
@@ -52,3 +55,13 @@ def create_app(
     for router in (health.router, atlases.router, frames.router, queries.router, jobs.router):
         app.include_router(router, prefix="/v1")
     return app
+
+
+def _size_thread_pool(settings: Settings) -> None:
+    """Give the synchronous routes enough threads that requests queued for inference never
+    starve the others (the gate, not the thread pool, is what bounds inference)."""
+    workers = settings.inference_workers or default_workers(settings.torch_threads)
+    limiter = anyio.to_thread.current_default_thread_limiter()
+    limiter.total_tokens = max(
+        limiter.total_tokens, request_threads(workers, settings.inference_queue)
+    )

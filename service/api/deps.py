@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Path, Request
 
 from service.atlas_service import AtlasService
 from service.runtime import Runtime
@@ -20,3 +20,7 @@ def get_service(runtime: Annotated[Runtime, Depends(get_runtime)]) -> AtlasServi
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 ServiceDep = Annotated[AtlasService, Depends(get_service)]
+
+# Ids are SQL BIGINTs: a larger number in a path is a bad request (422), not a database overflow.
+MAX_ROW_ID = 2**63 - 1
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A positive id (at most 2^63 - 1).")]

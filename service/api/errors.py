@@ -13,6 +13,7 @@ from service.errors import (
     LoopNetError,
     NotFound,
     NotReady,
+    Overloaded,
     WeightsUnavailable,
 )
 
@@ -23,6 +24,7 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (NotFound, 404),
     (Conflict, 409),
     (NotReady, 503),
+    (Overloaded, 503),
     (WeightsUnavailable, 503),
 ]
 
@@ -34,11 +36,16 @@ def status_of(error: LoopNetError) -> int:
     return 500
 
 
+def retry_after_s(error: LoopNetError) -> int:
+    """Seconds a client should wait before retrying a 503: the gate's estimate when saturated."""
+    return error.retry_after_s if isinstance(error, Overloaded) else 5
+
+
 def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(LoopNetError)
     async def _loopnet_error(_request: Request, exc: LoopNetError) -> JSONResponse:
         status = status_of(exc)
-        headers = {"Retry-After": "5"} if status == 503 else None
+        headers = {"Retry-After": str(retry_after_s(exc))} if status == 503 else None
         return JSONResponse(
             {"detail": str(exc), "error": type(exc).__name__}, status_code=status, headers=headers
         )

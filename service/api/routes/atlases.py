@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Response, status
 
-from service.api.deps import ServiceDep
+from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
 from service.storage import repository as repo
 from service.storage.db import transaction
@@ -104,7 +104,7 @@ def list_models(atlas: str, service: ServiceDep) -> list[ModelVersionOut]:
     summary="Make a model version the active one (roll back or forward)",
     description="Every API process serves it within LOOPNET_MODEL_POLL_SECONDS; this one at once.",
 )
-def activate_model(atlas: str, version: int, service: ServiceDep) -> ModelVersionOut:
+def activate_model(atlas: str, version: RowId, service: ServiceDep) -> ModelVersionOut:
     with transaction(service.sessions) as session:
         found = repo.get_atlas(session, name=atlas)
         activated = repo.activate_model_version(session, atlas_id=found.id, version=version)

@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 
-from service.api.deps import ServiceDep
+from service.api.deps import RowId, ServiceDep
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field, read_image_upload
 from service.geometry import Intrinsics, Pose
@@ -64,7 +64,7 @@ def add_frame(
     responses={404: {"model": ErrorOut}},
     summary="A frame's metadata",
 )
-def get_frame(atlas: str, frame_id: int, service: ServiceDep) -> FrameOut:
+def get_frame(atlas: str, frame_id: RowId, service: ServiceDep) -> FrameOut:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         frame = repo.get_frame(session, atlas=found, frame_id=frame_id)

@@ -12,7 +12,8 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health", response_model=HealthOut, summary="The process is up")
-def health() -> HealthOut:
+async def health() -> HealthOut:
+    """Answered on the event loop itself, so it stays fast while every worker thread is busy."""
     return HealthOut(status="ok")
 
 

@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, status
 
-from service.api.deps import RuntimeDep, ServiceDep
+from service.api.deps import RowId, RuntimeDep, ServiceDep
 from service.api.schemas import ErrorOut, JobIn, JobOut
 from service.errors import InvalidInput, NotReady
 from service.ml.training import TrainingConfig
@@ -74,7 +74,7 @@ def list_jobs(atlas: str, service: ServiceDep) -> list[JobOut]:
 
 
 @router.get("/atlases/{atlas}/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
-def get_job(atlas: str, job_id: int, service: ServiceDep) -> JobOut:
+def get_job(atlas: str, job_id: RowId, service: ServiceDep) -> JobOut:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         return job_out(atlas, jobs.get_job(session, job_id=job_id, atlas_id=found.id))
@@ -86,7 +86,7 @@ def get_job(atlas: str, job_id: int, service: ServiceDep) -> JobOut:
     responses=ERRORS,
     summary="Cancel a queued job, or ask a running one to stop",
 )
-def cancel_job(atlas: str, job_id: int, service: ServiceDep) -> JobOut:
+def cancel_job(atlas: str, job_id: RowId, service: ServiceDep) -> JobOut:
     with transaction(service.sessions) as session:
         found = repo.get_atlas(session, name=atlas)
         job = jobs.request_cancel(

@@ -143,7 +143,9 @@ def test_health_answers_fast_while_inference_is_saturated(tight_client: TestClie
         start = time.perf_counter()
         health = tight_client.get("/v1/health")
         elapsed = time.perf_counter() - start
-        assert health.status_code == 200 and elapsed < 0.5
+        # the slot stays held by this test: a health check that waited for inference would
+        # never come back; the bound only keeps a slow machine from hiding a stall
+        assert health.status_code == 200 and elapsed < 5.0
         atlases = tight_client.get("/v1/atlases")  # a database read is not held up either
         assert atlases.status_code == 200
     assert waiting.result(timeout=60).status_code == 201

@@ -73,6 +73,18 @@ def list_submaps(atlas: str, service: ServiceDep) -> list[SubmapOut]:
         return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
 
 
+@router.delete(
+    "/atlases/{atlas}/submaps/{submap}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=NOT_FOUND,
+    summary="Delete a submap with its frames",
+    description="Every API process drops its frames from its index within LOOPNET_SYNC_SECONDS.",
+)
+def delete_submap(atlas: str, submap: str, service: ServiceDep) -> Response:
+    service.delete_submap(atlas, submap)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
 def model_version_out(version: ModelVersion) -> ModelVersionOut:
     return ModelVersionOut(
         version=version.version,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
@@ -94,3 +94,15 @@ def frame_out(atlas: str, frame: Frame) -> FrameOut:
         keypoints=frame.keypoint_count,
         created_at=frame.created_at,
     )
+
+
+@router.delete(
+    "/atlases/{atlas}/frames/{frame_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={404: {"model": ErrorOut}},
+    summary="Delete a frame and its stored features",
+    description="Every API process drops it from its index within LOOPNET_SYNC_SECONDS.",
+)
+def delete_frame(atlas: str, frame_id: int, service: ServiceDep) -> Response:
+    service.delete_frame(atlas, frame_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -33,3 +33,11 @@ class WeightsUnavailable(LoopNetError):
 
 class NotReady(LoopNetError):
     """The service is still starting (models or indexes not loaded yet)."""
+
+
+class Unauthorized(LoopNetError):
+    """No API key, or an unknown or revoked one."""
+
+
+class Forbidden(LoopNetError):
+    """The key's role or atlases do not cover the request."""

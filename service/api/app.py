@@ -9,7 +9,8 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api.errors import install_error_handlers
-from service.api.routes import atlases, frames, health, jobs, queries
+from service.api.routes import atlases, frames, health, jobs, keys, loop_closures, queries
+from service.auth import Authenticator
 from service.config import Settings
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
@@ -34,8 +35,11 @@ def create_app(
     runtime = Runtime(settings or Settings(), pipeline)
 
     @asynccontextmanager
-    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         runtime.start(background=background_load)
+        assert runtime.sessions is not None
+        app.state.authenticator = Authenticator(runtime.settings, runtime.sessions)
+        app.state.authenticator.announce()
         try:
             yield
         finally:
@@ -49,6 +53,7 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
-    for router in (health.router, atlases.router, frames.router, queries.router, jobs.router):
+    routers = (health, atlases, frames, queries, jobs, keys, loop_closures)
+    for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
     return app

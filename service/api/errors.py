@@ -7,12 +7,14 @@ from fastapi.responses import JSONResponse
 
 from service.errors import (
     Conflict,
+    Forbidden,
     ImageTooLarge,
     InvalidImage,
     InvalidInput,
     LoopNetError,
     NotFound,
     NotReady,
+    Unauthorized,
     WeightsUnavailable,
 )
 
@@ -21,6 +23,8 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (InvalidImage, 422),
     (InvalidInput, 422),
     (NotFound, 404),
+    (Unauthorized, 401),
+    (Forbidden, 403),
     (Conflict, 409),
     (NotReady, 503),
     (WeightsUnavailable, 503),
@@ -39,6 +43,8 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _loopnet_error(_request: Request, exc: LoopNetError) -> JSONResponse:
         status = status_of(exc)
         headers = {"Retry-After": "5"} if status == 503 else None
+        if status == 401:
+            headers = {"WWW-Authenticate": "Bearer"}
         return JSONResponse(
             {"detail": str(exc), "error": type(exc).__name__}, status_code=status, headers=headers
         )

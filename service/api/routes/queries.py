@@ -7,9 +7,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, UploadFile
 
+from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, QueryOut
 from service.api.uploads import read_image_upload
+from service.loop_closures import record_if_inter_robot
 
 router = APIRouter(tags=["queries"])
 
@@ -32,6 +34,7 @@ router = APIRouter(tags=["queries"])
 def query(
     atlas: str,
     service: ServiceDep,
+    _: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: Annotated[
@@ -43,5 +46,8 @@ def query(
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         k=k,
         robot_id=robot_id or None,
+    )
+    record_if_inter_robot(
+        service.sessions, robot_id=robot_id or None, result=result, source="query"
     )
     return QueryOut.model_validate(asdict(result))

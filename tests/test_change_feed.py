@@ -16,8 +16,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.change_feed import ADD, changes_between, record
-from service.storage.db import make_engine, make_session_factory, upgrade_database
+from service.change_feed import ADD, changes_between, prune, record, revisions
+from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Atlas
 from tests.api.helpers import add_frame, create_atlas
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
@@ -129,3 +129,22 @@ def test_revisions_follow_commit_order_not_id_order(postgres_url: str) -> None:
         changes = changes_between(reader, atlas_id=atlas_id, after=0, upto=2)
     assert changes.complete and changes.added == [1, 2]
     engine.dispose()
+
+
+def test_a_process_behind_the_pruned_log_reconciles_everything(
+    two_apps: tuple[TestClient, TestClient],
+) -> None:
+    one, two = two_apps
+    create_atlas(one)
+    first = add_frame(one, gardens_point_day_night(0, "ref"))["frame_id"]
+    within(5 * SYNC_SECONDS + 2, lambda: indexed(two) == {first})
+    runtime_two = two.app.state.runtime  # type: ignore[attr-defined]
+    runtime_two._follower.stop()  # process two falls behind ...
+    later = [add_frame(one, gardens_point_day_night(i, "ref"))["frame_id"] for i in (1, 2)]
+    assert one.delete(f"/v1/atlases/campus/frames/{first}").status_code == 204
+    with transaction(runtime_two.sessions) as session:  # ... past what the log still holds
+        assert prune(session, older_than_seconds=-60) >= 3
+    assert indexed(two) == {first}
+    with runtime_two.sessions() as session:
+        runtime_two.service.follow(revisions(session))
+    assert indexed(two) == set(later)

@@ -36,6 +36,17 @@ def open_client(tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: igno
         yield client
 
 
+def test_the_open_default_says_so(
+    tmp_path: Path, pipeline, caplog: pytest.LogCaptureFixture
+) -> None:  # type: ignore[no-untyped-def]
+    with (
+        caplog.at_level("WARNING"),
+        TestClient(create_app(make_settings(tmp_path / "data"), pipeline=pipeline)),
+    ):
+        pass
+    assert "no API keys exist, so the API is open" in caplog.text
+
+
 def test_keys_turn_on_once_one_exists_and_roles_nest(open_client: TestClient) -> None:
     client = open_client
     # embedded default: no keys, open access

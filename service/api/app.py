@@ -9,7 +9,16 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api.errors import install_error_handlers
-from service.api.routes import atlases, frames, health, jobs, keys, loop_closures, queries
+from service.api.routes import (
+    atlases,
+    frames,
+    health,
+    jobs,
+    keys,
+    loop_closures,
+    queries,
+    snapshots,
+)
 from service.auth import Authenticator
 from service.config import Settings
 from service.ml.pipeline import FeaturePipeline
@@ -53,7 +62,7 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
-    routers = (health, atlases, frames, queries, jobs, keys, loop_closures)
+    routers = (health, atlases, frames, queries, jobs, keys, loop_closures, snapshots)
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
     return app

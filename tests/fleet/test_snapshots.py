@@ -199,3 +199,29 @@ def test_restore_refuses_bad_archives(exported, tmp_path: Path) -> None:  # type
             target.addfile(member, io.BytesIO(data))
     damaged = loopnet(env, "snapshot", "restore", str(corrupt))
     assert damaged.returncode == 1 and "frames.jsonl is corrupt" in damaged.stderr
+
+
+def test_snapshot_over_http_round_trips(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    settings = make_settings(tmp_path / "data")
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+        create_atlas(client, submaps=("s0",))
+        for i in range(3):
+            add_frame(client, gardens_point_day_night(i, "ref"), robot=f"robot-{i}")
+        download = client.get("/v1/atlases/campus/snapshot")
+        assert download.status_code == 200
+        assert download.headers["content-type"] == "application/x-tar"
+        restored = client.post(
+            "/v1/snapshots?name=copy", files={"archive": ("s.tar", download.content)}
+        )
+        assert restored.status_code == 201, restored.text
+        assert restored.json()["frames"] == 3
+        assert answers(client, "copy") == answers(client, "campus")
+        again = client.post(
+            "/v1/snapshots?name=copy", files={"archive": ("s.tar", download.content)}
+        )
+        assert again.status_code == 409
+        junk = client.post("/v1/snapshots", files={"archive": ("s.tar", b"not a tar file")})
+        assert (
+            junk.status_code == 422 and "not a readable snapshot archive" in junk.json()["detail"]
+        )

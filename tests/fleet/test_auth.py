@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -115,29 +112,34 @@ def test_required_mode_refuses_without_any_key(tmp_path: Path, pipeline) -> None
         assert client.get("/v1/ready").status_code == 200
 
 
-def test_cli_creates_lists_and_revokes_keys(tmp_path: Path) -> None:
-    env = {**os.environ, "LOOPNET_DATA_DIR": str(tmp_path / "data")}
+def test_cli_creates_lists_and_revokes_keys(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from service.cli import main
 
-    def loopnet(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [sys.executable, "-m", "service.cli", *args],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+    monkeypatch.setenv("LOOPNET_DATA_DIR", str(tmp_path / "data"))
 
-    created = loopnet(
+    def loopnet(*args: str) -> tuple[int, str, str]:
+        code = main(list(args))
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    code, out, err = loopnet(
         "keys", "create", "--role", "robot", "--atlas", "a", "--atlas", "b", "--name", "husky"
     )
-    assert created.returncode == 0, created.stderr
-    key = json.loads(created.stdout)
+    assert code == 0, err
+    key = json.loads(out)
     assert key["role"] == "robot" and key["atlases"] == ["a", "b"]
-    assert "not shown again" in created.stderr
-    listed = loopnet("keys", "list")
-    assert key["token"] not in listed.stdout and f'"prefix": "{key["prefix"]}"' in listed.stdout
-    assert loopnet("keys", "revoke", str(key["id"])).returncode == 0
-    assert loopnet("keys", "revoke", "999").returncode == 1
+    assert "not shown again" in err
+    code, listed, _ = loopnet("keys", "list")
+    assert key["token"] not in listed and f'"prefix": "{key["prefix"]}"' in listed
+    assert loopnet("keys", "revoke", str(key["id"]))[0] == 0
+    code, _, err = loopnet("keys", "revoke", "999")
+    assert code == 1 and "API key 999 does not exist" in err
+    code, _, err = loopnet(
+        "keys", "create", "--role", "robot", "--atlas", "bad name", "--name", "x"
+    )
+    assert code == 1 and "atlas name 'bad name' is invalid" in err
 
     from service.storage.db import make_engine, make_session_factory
 

@@ -6,15 +6,16 @@ from __future__ import annotations
 import io
 import json
 import os
-import subprocess
-import sys
 import tarfile
+from contextlib import redirect_stderr, redirect_stdout
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.cli import main
 from service.loop_closures import record_if_inter_robot
 from service.retraining import JobRunner
 from service.storage import jobs
@@ -32,14 +33,28 @@ from tests.conftest import (
 QUERIES = (1, 4, 7)
 
 
-def loopnet(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "service.cli", *args],
-        env={**os.environ, **env},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def loopnet(env: dict[str, str], *args: str) -> Ran:
+    """``loopnet ARGS`` in this process (the CLI's own code) with ``env`` set meanwhile."""
+    saved = {name: os.environ.get(name) for name in env}
+    os.environ.update(env)
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with redirect_stdout(out), redirect_stderr(err):
+            code = main(list(args))
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    return Ran(code, out.getvalue(), err.getvalue())
 
 
 def deployment_env(data_dir: Path, database_url: str | None = None) -> dict[str, str]:

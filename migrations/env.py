@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from alembic import context
+from sqlalchemy import text
 
 from service.storage.db import make_engine
 from service.storage.models import Base
@@ -26,9 +27,16 @@ def run_migrations_offline() -> None:
         context.run_migrations()
 
 
+# Several processes (API replicas, workers) migrate at start; on PostgreSQL they take turns.
+MIGRATION_LOCK = 0x100F_0E7
+
+
 def run_migrations_online() -> None:
     engine = make_engine(_url())
     with engine.connect() as connection:
+        if connection.dialect.name == "postgresql":
+            connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": MIGRATION_LOCK})
+            connection.commit()
         context.configure(
             connection=connection,
             target_metadata=target_metadata,

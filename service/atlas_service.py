@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import models_store
+from service import change_feed, models_store
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
 from service.errors import Conflict, InvalidInput, NotFound
@@ -68,6 +68,7 @@ class LoadedAtlas:
     index: AtlasIndex
     dirty: bool = False
     checked_at: float = field(default_factory=time.monotonic)
+    revision: int = 0  # the atlas revision the index reflects (see service/change_feed.py)
 
 
 @dataclass
@@ -277,6 +278,8 @@ class AtlasService:
         with self.sessions() as session:
             version: ModelVersion = repo.active_model_version(session, atlas_id=atlas_id)
             heads = models_store.load_heads(version, self.settings.models_dir)
+            # the revision first: frames read after it can only be newer, never missing
+            revision = change_feed.atlas_revision(session, atlas_id=atlas_id)
             robot_of = repo.frame_ids_and_robots(session, atlas_id=atlas_id)
             path = self._index_path(atlas_id, version.version)
             index = None
@@ -287,7 +290,7 @@ class AtlasService:
                     log.warning("index %s unreadable (%s); rebuilding from the database", path, exc)
             if index is None:
                 index = AtlasIndex(heads.config.fused_dim)
-            state = LoadedAtlas(atlas_id, version.version, heads, index)
+            state = LoadedAtlas(atlas_id, version.version, heads, index, revision=revision)
             self._reconcile(session, state, robot_of)
         return state
 
@@ -414,12 +417,86 @@ class AtlasService:
                 intrinsics=intrinsics,
                 features=features,
             )
+            revision = change_feed.record(
+                session, atlas_id=atlas.id, op=change_feed.ADD, frame_ids=[frame.id]
+            )
         with self._atlas_lock(frame.atlas_id):
             state = self.loaded(frame.atlas_id)
-            embedding = self._embed(state.heads, features)
-            state.index.add(np.array([frame.id]), embedding[None], [robot_id])
-            state.dirty = True
+            if state.revision < revision:  # else the change feed has handled it already
+                embedding = self._embed(state.heads, features)
+                state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+                state.dirty = True
         return frame
+
+    def delete_frame(self, atlas_name: str, frame_id: int) -> None:
+        """Delete one frame (rows, features); every process drops it from its index."""
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            session.delete(repo.get_frame(session, atlas=atlas, frame_id=frame_id))
+            atlas_id = atlas.id
+            revision = change_feed.record(
+                session, atlas_id=atlas_id, op=change_feed.REMOVE, frame_ids=[frame_id]
+            )
+        self._drop_from_index(atlas_id, [frame_id], revision)
+
+    def delete_submap(self, atlas_name: str, submap_name: str) -> int:
+        """Delete a submap with its frames; returns how many frames went."""
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            submap = repo.get_submap(session, atlas=atlas, name=submap_name)
+            frame_ids = repo.frame_ids_of_submap(session, submap_id=submap.id)
+            session.delete(submap)  # the database cascades to its frames and their features
+            atlas_id, revision = atlas.id, None
+            if frame_ids:
+                revision = change_feed.record(
+                    session, atlas_id=atlas_id, op=change_feed.REMOVE, frame_ids=frame_ids
+                )
+        if revision is not None:
+            self._drop_from_index(atlas_id, frame_ids, revision)
+        return len(frame_ids)
+
+    def _drop_from_index(self, atlas_id: int, frame_ids: list[int], revision: int) -> None:
+        with self._atlas_lock(atlas_id):
+            with self._loaded_lock:
+                state = self._loaded.get(atlas_id)
+            if state is not None and state.revision < revision:
+                state.index.remove(np.array(frame_ids, np.int64))
+                state.dirty = True
+
+    def follow(self, revisions: dict[int, int]) -> None:
+        """Catch the loaded atlases up with the database (``revisions``: atlas id -> current).
+
+        Called by the :class:`~service.change_feed.ChangeFollower` thread: applies the frames
+        other processes added or removed, and forgets atlases deleted elsewhere.
+        """
+        with self._loaded_lock:
+            loaded_ids = list(self._loaded)
+        for atlas_id in loaded_ids:
+            if atlas_id not in revisions:
+                with self._loaded_lock:
+                    self._loaded.pop(atlas_id, None)
+                log.info("atlas %d was deleted; dropped from memory", atlas_id)
+                continue
+            with self._atlas_lock(atlas_id):
+                with self._loaded_lock:
+                    state = self._loaded.get(atlas_id)
+                if state is None or state.revision >= revisions[atlas_id]:
+                    continue
+                upto = revisions[atlas_id]
+                with self.sessions() as session:
+                    changes = change_feed.changes_between(
+                        session, atlas_id=atlas_id, after=state.revision, upto=upto
+                    )
+                    if changes.complete:
+                        state.index.remove(np.array(changes.removed, np.int64))
+                        add_stored_frames(
+                            session, atlas_id, state.heads, state.index, frame_ids=changes.added
+                        )
+                    else:  # the log was pruned past our cursor: compare everything
+                        upto = change_feed.atlas_revision(session, atlas_id=atlas_id)
+                        robot_of = repo.frame_ids_and_robots(session, atlas_id=atlas_id)
+                        self._reconcile(session, state, robot_of)
+                state.revision, state.dirty = upto, True
 
     @staticmethod
     def _validate_frame_fields(robot_id: str, timestamp: float | None) -> None:

@@ -1,4 +1,4 @@
-"""The ``loopnet`` command: serve, worker, ingest, query, reindex, eval, db upgrade, weights seed.
+"""The ``loopnet`` command: serve, worker, ingest, query, reindex, eval, keys, snapshot, db, weights.
 
 ``ingest`` and ``query`` talk to a running service over HTTP (the same path robots use), so the
 server's in-memory index always sees what they add. ``reindex`` and ``db upgrade`` work on the
@@ -10,9 +10,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from service.cli_fleet import add_parsers as add_fleet_parsers
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -64,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     reindex.set_defaults(func=cmd_reindex)
 
     add_eval_parser(commands)
+    add_fleet_parsers(commands)
 
     seed = commands.add_parser("weights", help="pretrained weights in the torch hub cache")
     seed_commands = seed.add_subparsers(dest="weights_command", required=True)
@@ -198,7 +202,9 @@ def cmd_worker(args: argparse.Namespace) -> int:
 def _client(url: str):  # type: ignore[no-untyped-def]
     import httpx
 
-    return httpx.Client(base_url=url.rstrip("/") + "/v1", timeout=300)
+    key = os.environ.get("LOOPNET_API_KEY")  # needed once the service asks for keys
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    return httpx.Client(base_url=url.rstrip("/") + "/v1", timeout=300, headers=headers)
 
 
 def _fail(response) -> int:  # type: ignore[no-untyped-def]

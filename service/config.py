@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -83,6 +84,19 @@ class Settings(BaseSettings):
     )
     inference_wait_seconds: float = Field(
         30.0, gt=0, description="Longest wait for an inference slot before answering 503."
+    )
+    sync_seconds: float = Field(
+        1.0,
+        ge=0.05,
+        le=3600,
+        description="How often a process applies frames other processes added or removed.",
+    )
+    change_retention_seconds: float = Field(
+        3600.0, ge=60, description="How long the frame change log is kept."
+    )
+    auth: Literal["auto", "required", "off"] = Field(
+        "auto",
+        description="API keys: 'auto' = required once a key exists, 'required' always, 'off' never.",
     )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)

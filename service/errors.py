@@ -41,3 +41,11 @@ class Overloaded(LoopNetError):
     def __init__(self, message: str, *, retry_after_s: int = 1) -> None:
         super().__init__(message)
         self.retry_after_s = retry_after_s
+
+
+class Unauthorized(LoopNetError):
+    """No API key, or an unknown or revoked one."""
+
+
+class Forbidden(LoopNetError):
+    """The key's role or atlases do not cover the request."""

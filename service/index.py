@@ -6,6 +6,7 @@ The database is the source of truth; the index file under the data directory is 
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,7 +122,9 @@ class AtlasIndex:
     def save(self, path: Path) -> None:
         """Write the index atomically (temporary file, then rename)."""
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
+        # a name of its own per process and thread: replicas sharing a data directory may
+        # save the same index at once, and must never interleave their bytes in one file
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
         with self._lock:
             faiss.write_index(self._index, str(tmp))
         tmp.replace(path)

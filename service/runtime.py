@@ -14,6 +14,7 @@ from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas_service import AtlasService
+from service.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
 from service.ml.pipeline import FeaturePipeline
@@ -35,6 +36,7 @@ class Runtime:
         self.error: str | None = None
         self._thread: threading.Thread | None = None
         self._queue: Queue | None = None
+        self._follower: ChangeFollower | None = None
 
     def start(self, *, background: bool = True) -> None:
         """Migrate the database, then load the CNNs and every atlas's index."""
@@ -60,6 +62,13 @@ class Runtime:
             pipeline = self._pipeline or FeaturePipeline(preset)
             service = AtlasService(self.settings, self.sessions, pipeline)
             service.load_all()
+            self._follower = ChangeFollower(
+                self.sessions,
+                service.follow,
+                interval=self.settings.sync_seconds,
+                retention_seconds=self.settings.change_retention_seconds,
+            )
+            self._follower.start()
             self._service = service
             log.info("ready")
         except Exception as exc:
@@ -101,6 +110,8 @@ class Runtime:
 
     def stop(self) -> None:
         self.wait_ready(timeout=60)
+        if self._follower is not None:
+            self._follower.stop()
         if self._service is not None:
             self._service.flush()
         if self.engine is not None:

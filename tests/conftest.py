@@ -25,6 +25,8 @@ DATA_DIR = SHARED / "data"
 TEST_LONG_SIDE = 256  # DISK at 256 px keeps the suite fast; the presets use 512 and 1024
 TEST_MAX_KEYPOINTS = 512
 
+pytest_plugins = ["tests.services"]  # postgres_url, redis_queue
+
 
 def _seed_torch_home() -> Path:
     from service.ml.weights import seed_cache

@@ -9,7 +9,6 @@ import socket
 import subprocess
 import sys
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -168,12 +167,12 @@ def test_retraining_with_a_sqlite_queue(app_client: TestClient, tmp_path: Path) 
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not redis_available(), reason="no Redis server on 127.0.0.1:6379")
-def test_retraining_with_a_redis_queue(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
-    redis = {
-        "LOOPNET_REDIS_URL": "redis://127.0.0.1:6379/0",
-        "LOOPNET_QUEUE_NAME": f"test-{uuid.uuid4().hex}",
-    }
+def test_retraining_with_a_redis_queue(
+    tmp_path: Path,
+    pipeline,
+    redis_queue: dict[str, str],  # skips without Redis (fails with LOOPNET_REQUIRE_SERVICES=1)
+) -> None:  # type: ignore[no-untyped-def]
+    redis = redis_queue
     settings = make_settings(
         tmp_path / "data",
         model_poll_seconds=0.0,

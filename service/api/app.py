@@ -10,7 +10,17 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api.errors import install_error_handlers
-from service.api.routes import atlases, frames, health, jobs, queries
+from service.api.routes import (
+    atlases,
+    frames,
+    health,
+    jobs,
+    keys,
+    loop_closures,
+    queries,
+    snapshots,
+)
+from service.auth import Authenticator
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
 from service.ml.pipeline import FeaturePipeline
@@ -36,9 +46,12 @@ def create_app(
     runtime = Runtime(settings or Settings(), pipeline)
 
     @asynccontextmanager
-    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         runtime.start(background=background_load)
         _size_thread_pool(runtime.settings)
+        assert runtime.sessions is not None
+        app.state.authenticator = Authenticator(runtime.settings, runtime.sessions)
+        app.state.authenticator.announce()
         try:
             yield
         finally:
@@ -52,7 +65,8 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
-    for router in (health.router, atlases.router, frames.router, queries.router, jobs.router):
+    routers = (health, atlases, frames, queries, jobs, keys, loop_closures, snapshots)
+    for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
     return app
 

@@ -7,6 +7,7 @@ from fastapi.responses import JSONResponse
 
 from service.errors import (
     Conflict,
+    Forbidden,
     ImageTooLarge,
     InvalidImage,
     InvalidInput,
@@ -14,6 +15,7 @@ from service.errors import (
     NotFound,
     NotReady,
     Overloaded,
+    Unauthorized,
     WeightsUnavailable,
 )
 
@@ -22,6 +24,8 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (InvalidImage, 422),
     (InvalidInput, 422),
     (NotFound, 404),
+    (Unauthorized, 401),
+    (Forbidden, 403),
     (Conflict, 409),
     (NotReady, 503),
     (Overloaded, 503),
@@ -46,6 +50,8 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _loopnet_error(_request: Request, exc: LoopNetError) -> JSONResponse:
         status = status_of(exc)
         headers = {"Retry-After": str(retry_after_s(exc))} if status == 503 else None
+        if status == 401:
+            headers = {"WWW-Authenticate": "Bearer"}
         return JSONResponse(
             {"detail": str(exc), "error": type(exc).__name__}, status_code=status, headers=headers
         )

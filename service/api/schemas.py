@@ -226,3 +226,39 @@ class JobOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     updated_at: datetime
+
+
+class ApiKeyIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=128, examples=["husky-1"])
+    role: Literal["robot", "operator", "admin"]
+    atlases: list[str] = Field(
+        default_factory=list, description="Atlases the key may use; empty: every atlas."
+    )
+
+
+class ApiKeyOut(BaseModel):
+    id: int
+    name: str
+    role: str
+    atlases: list[str]
+    prefix: str = Field(description="The token's first characters, to recognise it.")
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class NewApiKeyOut(ApiKeyOut):
+    token: str = Field(description="The key itself: shown this once, only its hash is stored.")
+
+
+class LoopClosureOut(BaseModel):
+    id: int
+    robot_id: str = Field(description="The robot whose query or observation closed the loop.")
+    frame_id: int = Field(description="The matched frame.")
+    matched_robot_id: str = Field(description="The robot that took the matched frame.")
+    submap: str
+    similarity: float
+    model_version: int
+    source: str = Field(description="query or observe")
+    created_at: datetime

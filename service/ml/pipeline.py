@@ -4,7 +4,6 @@ evaluation harness share."""
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -15,7 +14,7 @@ from service.ml.backbones import GlobalBackbone, build_backbone
 from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
-from service.ml.presets import ModelPreset
+from service.ml.presets import ModelPreset, preset_signature
 
 
 class FeaturePipeline:
@@ -29,7 +28,7 @@ class FeaturePipeline:
     @property
     def signature(self) -> dict[str, Any]:
         """What the stored features mean; an atlas only accepts features of its signature."""
-        return {"local": asdict(self.preset.local), "backbone": asdict(self.preset.backbone)}
+        return preset_signature(self.preset)
 
     def heads_config(self, alpha: float | None = None) -> HeadsConfig:
         return HeadsConfig(

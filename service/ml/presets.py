@@ -7,7 +7,8 @@ from ``benchmarks/stage_latency.py``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 from service.ml.backbones import BackboneConfig
 from service.ml.local_extractors import LocalExtractorConfig
@@ -65,3 +66,8 @@ def resolve_preset(
         backbone=model_backbone,
         alpha=preset.alpha if alpha is None else alpha,
     )
+
+
+def preset_signature(preset: ModelPreset) -> dict[str, Any]:
+    """What stored features mean (extractor and backbone settings); atlases record it."""
+    return {"local": asdict(preset.local), "backbone": asdict(preset.backbone)}

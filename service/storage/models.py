@@ -7,6 +7,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -56,6 +57,10 @@ class Atlas(Base):
     description: Mapped[str] = mapped_column(String(1000), default="")
     feature_signature: Mapped[dict[str, Any]]
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # Bumped by every transaction that adds or removes frames, as its last statement: the row
+    # lock orders those transactions by commit, so API processes catch up without missing any
+    # (see service/change_feed.py).
+    revision: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
 
     submaps: Mapped[list[Submap]] = relationship(
         back_populates="atlas", cascade="all, delete-orphan", passive_deletes=True
@@ -177,3 +182,52 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class AtlasChange(Base):
+    """One frame added to or removed from an atlas, at the atlas revision that did it."""
+
+    __tablename__ = "atlas_changes"
+    __table_args__ = (Index("ix_atlas_changes_atlas_revision", "atlas_id", "revision"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
+    revision: Mapped[int] = mapped_column(BigInteger)
+    # "add" | "remove"; no foreign key: a removed frame's row is gone
+    op: Mapped[str] = mapped_column(String(8))
+    frame_id: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+
+
+class ApiKey(Base):
+    """An API key: only the SHA-256 of the token is stored; the token is shown once."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(128))
+    role: Mapped[str] = mapped_column(String(16))  # robot | operator | admin
+    # Atlas names the key may touch; an empty list means every atlas.
+    atlases: Mapped[list[str]] = mapped_column(JSON)
+    prefix: Mapped[str] = mapped_column(String(16))  # the token's first characters, for humans
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
+
+
+class LoopClosure(Base):
+    """A loop closure between robots: a query by one robot matched a frame another one took."""
+
+    __tablename__ = "loop_closures"
+    __table_args__ = (Index("ix_loop_closures_atlas_created", "atlas_id", "created_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
+    robot_id: Mapped[str] = mapped_column(String(128))  # the robot that asked
+    frame_id: Mapped[int] = mapped_column(ForeignKey("frames.id", ondelete="CASCADE"), index=True)
+    matched_robot_id: Mapped[str] = mapped_column(String(128))
+    submap_id: Mapped[int] = mapped_column(ForeignKey("submaps.id", ondelete="CASCADE"))
+    similarity: Mapped[float] = mapped_column(Float)
+    model_version: Mapped[int] = mapped_column(Integer)
+    source: Mapped[str] = mapped_column(String(16))  # query | observe
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -155,6 +155,10 @@ def frame_ids_and_robots(session: Session, *, atlas_id: int) -> dict[int, str]:
     return {int(i): robot for i, robot in rows}
 
 
+def frame_ids_of_submap(session: Session, *, submap_id: int) -> list[int]:
+    return [int(i) for i in session.scalars(select(Frame.id).where(Frame.submap_id == submap_id))]
+
+
 def create_model_version(
     session: Session,
     *,

@@ -6,6 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Response, status
 
+from service.api.auth import AdminAccess, OperatorAccess, RobotAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
 from service.storage import repository as repo
@@ -23,22 +24,24 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
     responses={409: {"model": ErrorOut}},
     summary="Create an atlas",
 )
-def create_atlas(body: AtlasIn, service: ServiceDep) -> AtlasOut:
+def create_atlas(body: AtlasIn, service: ServiceDep, _: AdminAccess) -> AtlasOut:
     service.create_atlas(body.name, body.description)
-    return get_atlas(body.name, service)
+    with service.sessions() as session:
+        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=body.name)))
 
 
 @router.get("/atlases", response_model=list[AtlasOut], summary="List atlases")
-def list_atlases(service: ServiceDep) -> list[AtlasOut]:
+def list_atlases(service: ServiceDep, caller: RobotAccess) -> list[AtlasOut]:
     with service.sessions() as session:
         return [
             AtlasOut(**service.atlas_summary(session, atlas))
             for atlas in repo.list_atlases(session)
+            if caller.may_use(atlas.name)
         ]
 
 
 @router.get("/atlases/{atlas}", response_model=AtlasOut, responses=NOT_FOUND)
-def get_atlas(atlas: str, service: ServiceDep) -> AtlasOut:
+def get_atlas(atlas: str, service: ServiceDep, _: RobotAccess) -> AtlasOut:
     with service.sessions() as session:
         return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=atlas)))
 
@@ -49,7 +52,7 @@ def get_atlas(atlas: str, service: ServiceDep) -> AtlasOut:
     responses=NOT_FOUND,
     summary="Delete an atlas with its submaps, frames, features, models and index",
 )
-def delete_atlas(atlas: str, service: ServiceDep) -> Response:
+def delete_atlas(atlas: str, service: ServiceDep, _: AdminAccess) -> Response:
     service.delete_atlas(atlas)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
@@ -61,16 +64,28 @@ def delete_atlas(atlas: str, service: ServiceDep) -> Response:
     responses={**NOT_FOUND, 409: {"model": ErrorOut}},
     summary="Create a submap",
 )
-def create_submap(atlas: str, body: SubmapIn, service: ServiceDep) -> SubmapOut:
+def create_submap(atlas: str, body: SubmapIn, service: ServiceDep, _: RobotAccess) -> SubmapOut:
     submap = service.create_submap(atlas, body.name)
     return SubmapOut(name=submap.name, frames=0, created_at=submap.created_at)
 
 
 @router.get("/atlases/{atlas}/submaps", response_model=list[SubmapOut], responses=NOT_FOUND)
-def list_submaps(atlas: str, service: ServiceDep) -> list[SubmapOut]:
+def list_submaps(atlas: str, service: ServiceDep, _: RobotAccess) -> list[SubmapOut]:
     with service.sessions() as session:
         rows = repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
         return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
+
+
+@router.delete(
+    "/atlases/{atlas}/submaps/{submap}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses=NOT_FOUND,
+    summary="Delete a submap with its frames",
+    description="Every API process drops its frames from its index within LOOPNET_SYNC_SECONDS.",
+)
+def delete_submap(atlas: str, submap: str, service: ServiceDep, _: OperatorAccess) -> Response:
+    service.delete_submap(atlas, submap)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 def model_version_out(version: ModelVersion) -> ModelVersionOut:
@@ -90,7 +105,7 @@ def model_version_out(version: ModelVersion) -> ModelVersionOut:
     responses=NOT_FOUND,
     summary="List the atlas's model versions",
 )
-def list_models(atlas: str, service: ServiceDep) -> list[ModelVersionOut]:
+def list_models(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[ModelVersionOut]:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         versions = repo.list_model_versions(session, atlas_id=found.id)
@@ -104,7 +119,9 @@ def list_models(atlas: str, service: ServiceDep) -> list[ModelVersionOut]:
     summary="Make a model version the active one (roll back or forward)",
     description="Every API process serves it within LOOPNET_MODEL_POLL_SECONDS; this one at once.",
 )
-def activate_model(atlas: str, version: RowId, service: ServiceDep) -> ModelVersionOut:
+def activate_model(
+    atlas: str, version: RowId, service: ServiceDep, _: OperatorAccess
+) -> ModelVersionOut:
     with transaction(service.sessions) as session:
         found = repo.get_atlas(session, name=atlas)
         activated = repo.activate_model_version(session, atlas_id=found.id, version=version)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
+from service.api.auth import OperatorAccess, RobotAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field, read_image_upload
@@ -32,6 +33,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 def add_frame(
     atlas: str,
     service: ServiceDep,
+    _: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Name of an existing submap.")],
     robot_id: Annotated[str, Form(description="The robot that took the frame.")],
@@ -55,7 +57,9 @@ def add_frame(
         pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
         intrinsics=Intrinsics(**intrinsics_in.model_dump()) if intrinsics_in else None,
     )
-    return get_frame(atlas, frame.id, service)
+    with service.sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        return frame_out(found.name, repo.get_frame(session, atlas=found, frame_id=frame.id))
 
 
 @router.get(
@@ -64,7 +68,7 @@ def add_frame(
     responses={404: {"model": ErrorOut}},
     summary="A frame's metadata",
 )
-def get_frame(atlas: str, frame_id: RowId, service: ServiceDep) -> FrameOut:
+def get_frame(atlas: str, frame_id: RowId, service: ServiceDep, _: RobotAccess) -> FrameOut:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
@@ -94,3 +98,15 @@ def frame_out(atlas: str, frame: Frame) -> FrameOut:
         keypoints=frame.keypoint_count,
         created_at=frame.created_at,
     )
+
+
+@router.delete(
+    "/atlases/{atlas}/frames/{frame_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={404: {"model": ErrorOut}},
+    summary="Delete a frame and its stored features",
+    description="Every API process drops it from its index within LOOPNET_SYNC_SECONDS.",
+)
+def delete_frame(atlas: str, frame_id: RowId, service: ServiceDep, _: OperatorAccess) -> Response:
+    service.delete_frame(atlas, frame_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -6,6 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, status
 
+from service.api.auth import OperatorAccess
 from service.api.deps import RowId, RuntimeDep, ServiceDep
 from service.api.schemas import ErrorOut, JobIn, JobOut
 from service.errors import InvalidInput, NotReady
@@ -35,7 +36,9 @@ def job_out(atlas: str, job: Job) -> JobOut:
         "time (409 otherwise)."
     ),
 )
-def submit_job(atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep) -> JobOut:
+def submit_job(
+    atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
+) -> JobOut:
     params = body.params.model_dump()
     try:
         TrainingConfig(**{**params, "train": tuple(params["train"])})
@@ -63,18 +66,19 @@ def submit_job(atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep
                 error=f"{type(exc).__name__}: {exc}",
             )
         raise NotReady(f"the job queue is unavailable: {exc}") from exc
-    return get_job(atlas, job_id, service)
+    with service.sessions() as session:
+        return job_out(atlas, jobs.get_job(session, job_id=job_id))
 
 
 @router.get("/atlases/{atlas}/jobs", response_model=list[JobOut], responses=ERRORS)
-def list_jobs(atlas: str, service: ServiceDep) -> list[JobOut]:
+def list_jobs(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[JobOut]:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         return [job_out(atlas, job) for job in jobs.list_jobs(session, atlas_id=found.id)]
 
 
 @router.get("/atlases/{atlas}/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
-def get_job(atlas: str, job_id: RowId, service: ServiceDep) -> JobOut:
+def get_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         return job_out(atlas, jobs.get_job(session, job_id=job_id, atlas_id=found.id))
@@ -86,7 +90,7 @@ def get_job(atlas: str, job_id: RowId, service: ServiceDep) -> JobOut:
     responses=ERRORS,
     summary="Cancel a queued job, or ask a running one to stop",
 )
-def cancel_job(atlas: str, job_id: RowId, service: ServiceDep) -> JobOut:
+def cancel_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
     with transaction(service.sessions) as session:
         found = repo.get_atlas(session, name=atlas)
         job = jobs.request_cancel(

@@ -7,11 +7,13 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile
 
+from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, IntrinsicsIn, ObserveOut, PoseIn, QueryOut
 from service.api.uploads import parse_json_field, read_image_upload
 from service.atlas_service import AtlasService
 from service.geometry import Intrinsics, Pose
+from service.loop_closures import record_if_inter_robot
 from service.query_filters import QueryFilter
 
 router = APIRouter(tags=["queries"])
@@ -92,6 +94,7 @@ def _filter(
 def query(
     atlas: str,
     service: ServiceDep,
+    _: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: RobotId = None,
@@ -124,6 +127,9 @@ def query(
         query_filter=query_filter,
         intrinsics=_intrinsics(intrinsics),
     )
+    record_if_inter_robot(
+        service.sessions, robot_id=robot_id or None, result=result, source="query"
+    )
     return QueryOut.model_validate(asdict(result))
 
 
@@ -140,6 +146,7 @@ def query(
 def observe(
     atlas: str,
     service: ServiceDep,
+    _: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
     robot_id: Annotated[str, Form(description="The robot that took the frame.")],
@@ -182,4 +189,5 @@ def observe(
         k=k,
         query_filter=query_filter,
     )
+    record_if_inter_robot(service.sessions, robot_id=robot_id, result=result, source="observe")
     return ObserveOut.model_validate({**asdict(result), "frame_id": frame.id})

@@ -1,0 +1,74 @@
+"""Atlas snapshots over HTTP (admin): download an archive, upload one to restore it."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Query, UploadFile, status
+from fastapi.responses import FileResponse
+from starlette.background import BackgroundTask
+
+from service.api.auth import AdminAccess
+from service.api.deps import ServiceDep
+from service.api.schemas import AtlasOut, ErrorOut
+from service.snapshots import export_atlas, restore_atlas
+from service.storage import repository as repo
+
+router = APIRouter(tags=["snapshots"])
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorOut},
+    403: {"model": ErrorOut},
+    404: {"model": ErrorOut},
+    409: {"model": ErrorOut},
+    422: {"model": ErrorOut},
+}
+
+
+@router.get(
+    "/atlases/{atlas}/snapshot",
+    response_class=FileResponse,
+    responses=ERRORS,
+    summary="Export the atlas to one archive (download)",
+    description="The same archive as `loopnet snapshot export`; restore it with POST /v1/snapshots.",
+)
+def export(atlas: str, service: ServiceDep, _: AdminAccess) -> FileResponse:
+    folder = Path(tempfile.mkdtemp(prefix="loopnet-snapshot-"))
+    path = folder / f"{atlas}.loopnet-snapshot.tar"
+    try:
+        export_atlas(service.settings, service.sessions, atlas, path)
+    except Exception:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return FileResponse(
+        path,
+        media_type="application/x-tar",
+        filename=path.name,
+        background=BackgroundTask(shutil.rmtree, folder, ignore_errors=True),
+    )
+
+
+@router.post(
+    "/snapshots",
+    response_model=AtlasOut,
+    status_code=status.HTTP_201_CREATED,
+    responses=ERRORS,
+    summary="Restore an uploaded snapshot archive as a new atlas",
+)
+def restore(
+    service: ServiceDep,
+    _: AdminAccess,
+    archive: Annotated[UploadFile, File(description="An archive from a snapshot export.")],
+    name: Annotated[
+        str | None, Query(description="The new atlas's name (default: archived)")
+    ] = None,
+) -> AtlasOut:
+    with tempfile.TemporaryDirectory(prefix="loopnet-restore-") as tmp:
+        path = Path(tmp) / "snapshot.tar"
+        with path.open("wb") as out:
+            shutil.copyfileobj(archive.file, out)
+        restored = restore_atlas(service.settings, service.sessions, path, name=name)
+    with service.sessions() as session:
+        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=restored)))

@@ -2,10 +2,21 @@
 
 The database is the source of truth; the index file under the data directory is a cache that
 ``reconcile`` brings back in step with the database after a restart or a crash.
+
+The index type follows the atlas's size (:class:`IndexPolicy`, figures in
+``benchmarks/RESULTS.md``, *Search at scale*): exact search (``IndexFlatIP``) while its
+vectors fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes (``IndexIVFScalarQuantizer``)
+whose code precision is the finest that fits the per-frame memory budget. The inverted file is
+trained on the atlas's own vectors when the atlas crosses that size and retrained when it has
+grown about fourfold since (its list count no longer fits its size). Both types keep what the
+service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
+through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed lists
+hold too few of them).
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +24,52 @@ from typing import Any
 
 import faiss
 import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+MIN_PER_LIST = 39  # k-means needs about this many training vectors per list (faiss warns below)
+
+
+def ivf_nlist(n: int) -> int:
+    """Inverted lists for ``n`` vectors: the power of two nearest ``4 sqrt(n)``, with at least
+    ``MIN_PER_LIST`` vectors per list (and at least 16 lists)."""
+    nearest = 2 ** round(np.log2(4 * np.sqrt(max(n, 1))))
+    most = 2 ** int(np.log2(max(n // MIN_PER_LIST, 1)))
+    return int(max(16, min(nearest, most)))
+
+
+@dataclass(frozen=True)
+class IndexPolicy:
+    """When the index switches from exact to approximate search, and how it is tuned.
+
+    Attributes:
+        flat_max_bytes: exact search while the flat index holds at most this many bytes of
+            vectors (32 MiB: about 4 ms a query on one core of our machine; 32k frames at 256-d,
+            6k at 1408-d). A scan's cost is its bytes, so the threshold is in bytes.
+        bytes_per_frame: memory budget of one frame's code in the inverted file (+ its 8-byte
+            id); the finest scalar quantiser that fits is chosen (fp16, 8, 6 or 4 bits).
+        nprobe: inverted lists visited per query.
+        train_per_list: training vectors per list (k-means sample, taken in id order).
+        kmeans_iterations: k-means iterations when (re)training.
+    """
+
+    flat_max_bytes: int = 32 << 20
+    bytes_per_frame: int = 1100
+    nprobe: int = 32
+    train_per_list: int = 64
+    kmeans_iterations: int = 10
+
+    def flat_max(self, dim: int) -> int:
+        """The most frames searched exactly at ``dim``."""
+        return self.flat_max_bytes // (4 * dim)
+
+    def quantizer(self, dim: int) -> str:
+        """The FAISS scalar-quantiser name whose codes fit the budget at ``dim``."""
+        for name, bits in (("SQfp16", 16), ("SQ8", 8), ("SQ6", 6)):
+            if dim * bits / 8 + 8 <= self.bytes_per_frame:
+                return name
+        return "SQ4"
 
 
 @dataclass(frozen=True)
@@ -22,12 +79,15 @@ class Hit:
 
 
 class AtlasIndex:
-    """Exact inner-product search over an atlas's frame embeddings, with robot filters."""
+    """Inner-product search over an atlas's frame embeddings, with robot filters."""
 
-    def __init__(self, dim: int, index: faiss.Index | None = None) -> None:
+    def __init__(
+        self, dim: int, index: faiss.Index | None = None, policy: IndexPolicy | None = None
+    ) -> None:
         self.dim = dim
+        self.policy = policy or IndexPolicy()
         # faiss's SWIG classes are only partly typed: treat the index as Any.
-        self._index: Any = index if index is not None else faiss.IndexIDMap2(faiss.IndexFlatIP(dim))
+        self._index: Any = index if index is not None else _flat(dim)
         if self._index.d != dim:
             raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
         self._robot_of: dict[int, str] = {}
@@ -37,16 +97,42 @@ class AtlasIndex:
     def size(self) -> int:
         return int(self._index.ntotal)
 
+    @property
+    def exact(self) -> bool:
+        """Whether searches are exact (a flat index) rather than approximate."""
+        return self._ivf() is None
+
+    def describe(self) -> str:
+        """The index type in words, for logs and benchmarks."""
+        ivf = self._ivf()
+        if ivf is None:
+            return "Flat (exact)"
+        return f"IVF{ivf.nlist},{_quantizer_name(ivf)} nprobe={min(self.policy.nprobe, ivf.nlist)}"
+
+    def _ivf(self) -> Any | None:
+        """The inverted-file index, or None while the index is flat."""
+        return self._index if isinstance(self._index, faiss.IndexIVF) else None
+
     def ids(self) -> np.ndarray:
         """The frame ids held, as int64 (unsorted)."""
         with self._lock:
-            return faiss.vector_to_array(self._index.id_map).astype(np.int64)
+            ivf = self._ivf()
+            if ivf is None:
+                return faiss.vector_to_array(self._index.id_map).astype(np.int64)
+            lists = ivf.invlists
+            parts = [
+                faiss.rev_swig_ptr(lists.get_ids(i), lists.list_size(i)).copy()
+                for i in range(ivf.nlist)
+                if lists.list_size(i)
+            ]
+            return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
     def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> int:
         """Add ``N`` unit ``vectors`` under frame ``ids`` taken by ``robots``.
 
         Idempotent: ids already held are skipped, so a frame caught up by reconciliation and
-        added by its own ingest call is indexed once. Returns how many were added.
+        added by its own ingest call is indexed once. Returns how many were added. An add that
+        takes the atlas past a size threshold of the policy rebuilds the index first.
         """
         vectors = np.ascontiguousarray(vectors, dtype=np.float32)
         if vectors.shape != (len(ids), self.dim):
@@ -56,7 +142,7 @@ class AtlasIndex:
             if not new.any():
                 return 0
             new_ids = np.asarray(ids, dtype=np.int64)[new]
-            self._index.add_with_ids(vectors[new], new_ids)
+            self._regrow(self.size + len(new_ids), new_ids, vectors[new])
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
             return int(new.sum())
@@ -73,6 +159,8 @@ class AtlasIndex:
             removed = int(self._index.remove_ids(np.asarray(ids, dtype=np.int64)))
             for i in ids:
                 self._robot_of.pop(int(i), None)
+            if self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:
+                self._rebuild(self._flat_like())  # shrunk well below the threshold: exact again
             return removed
 
     def search(self, vector: np.ndarray, k: int, robot_id: str | None = None) -> list[Hit]:
@@ -81,19 +169,95 @@ class AtlasIndex:
         with self._lock:
             if self.size == 0:
                 return []
-            params = None
+            allowed = None
             if robot_id is not None:
                 allowed = np.array(
                     [i for i, r in self._robot_of.items() if r == robot_id], dtype=np.int64
                 )
                 if len(allowed) == 0:
                     return []
-                params = faiss.SearchParameters(sel=faiss.IDSelectorBatch(allowed))  # type: ignore[call-arg]
-            k = min(k, self.size)
-            similarities, ids = self._index.search(query, k, params=params)
+            similarities, ids = self._search(query, min(k, self.size), allowed)
         return [
             Hit(int(i), float(s)) for i, s in zip(ids[0], similarities[0], strict=True) if i >= 0
         ]
+
+    def _search(
+        self, query: np.ndarray, k: int, allowed: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Search, restricted to the ``allowed`` frame ids when given.
+
+        On the inverted file a filtered search first visits ``nprobe`` lists; if they hold fewer
+        than ``k`` allowed frames (a rare robot's frames spread over the atlas) it searches every
+        list, which scores exactly the allowed frames' codes.
+        """
+        selector = None if allowed is None else faiss.IDSelectorBatch(allowed)
+        ivf = self._ivf()
+        if ivf is None:
+            params = None if selector is None else faiss.SearchParameters(sel=selector)  # type: ignore[call-arg]
+            return self._index.search(query, k, params=params)  # type: ignore[no-any-return]
+        nprobe = min(self.policy.nprobe, ivf.nlist)
+        params = faiss.SearchParametersIVF(nprobe=nprobe, sel=selector)  # type: ignore[call-arg]
+        similarities, ids = self._index.search(query, k, params=params)
+        wanted = k if allowed is None else min(k, len(allowed))
+        if int((ids[0] >= 0).sum()) < wanted and nprobe < ivf.nlist:
+            params = faiss.SearchParametersIVF(nprobe=ivf.nlist, sel=selector)  # type: ignore[call-arg]
+            similarities, ids = self._index.search(query, k, params=params)
+        return similarities, ids
+
+    # ----- choosing the type by size -------------------------------------------------------
+
+    def _regrow(self, new_size: int, ids: np.ndarray, vectors: np.ndarray) -> None:
+        """Add ``vectors``, first switching to (or retraining) the inverted file when the
+        atlas's size calls for it. Retraining uses the held vectors plus the new ones."""
+        ivf = self._ivf()
+        wanted = self._wanted_nlist(new_size)
+        if (ivf is None and wanted is None) or (
+            ivf is not None and wanted is not None and wanted < 2 * ivf.nlist
+        ):
+            self._index.add_with_ids(vectors, ids)
+            return
+        self._index.add_with_ids(vectors, ids)
+        self._rebuild(self._flat_like() if wanted is None else self._ivf_like(new_size))
+
+    def _wanted_nlist(self, size: int) -> int | None:
+        return None if size <= self.policy.flat_max(self.dim) else ivf_nlist(size)
+
+    def _flat_like(self) -> Any:
+        return _flat(self.dim)
+
+    def _ivf_like(self, size: int) -> Any:
+        nlist = ivf_nlist(size)
+        name = f"IVF{nlist},{self.policy.quantizer(self.dim)}"
+        index = faiss.index_factory(self.dim, name, faiss.METRIC_INNER_PRODUCT)
+        faiss.extract_index_ivf(index).cp.niter = self.policy.kmeans_iterations
+        return index
+
+    def _rebuild(self, target: Any) -> None:
+        """Move every held vector into ``target`` (training it first when it needs it)."""
+        ids = np.sort(self.ids())
+        vectors = self._reconstruct(ids)
+        if not target.is_trained:
+            nlist = faiss.extract_index_ivf(target).nlist
+            step = max(1, len(ids) // (self.policy.train_per_list * nlist))
+            target.train(vectors[::step])  # an evenly spaced sample in id order: deterministic
+        target.add_with_ids(vectors, ids)
+        log.info("index of %d frames rebuilt as %s", len(ids), type(target).__name__)
+        self._index = target
+
+    def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
+        """The stored vectors of ``ids`` (exact for flat, decoded codes for the inverted file)."""
+        if len(ids) == 0:
+            return np.zeros((0, self.dim), np.float32)
+        ivf = self._ivf()
+        if ivf is None:
+            return self._index.reconstruct_batch(ids)  # type: ignore[no-any-return]
+        ivf.set_direct_map_type(faiss.DirectMap.Hashtable)  # type: ignore[attr-defined]
+        try:
+            return ivf.reconstruct_batch(ids)  # type: ignore[no-any-return]
+        finally:
+            ivf.set_direct_map_type(faiss.DirectMap.NoMap)  # type: ignore[attr-defined]
+
+    # ----- files -------------------------------------------------------------------------
 
     def save(self, path: Path) -> None:
         """Write the index atomically (temporary file, then rename)."""
@@ -104,5 +268,20 @@ class AtlasIndex:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: Path, dim: int) -> AtlasIndex:
-        return cls(dim, faiss.read_index(str(path)))
+    def load(cls, path: Path, dim: int, policy: IndexPolicy | None = None) -> AtlasIndex:
+        return cls(dim, faiss.read_index(str(path)), policy)
+
+
+def _flat(dim: int) -> Any:
+    return faiss.IndexIDMap2(faiss.IndexFlatIP(dim))
+
+
+def _quantizer_name(ivf: Any) -> str:
+    names = {
+        faiss.ScalarQuantizer.QT_fp16: "SQfp16",
+        faiss.ScalarQuantizer.QT_8bit: "SQ8",
+        faiss.ScalarQuantizer.QT_6bit: "SQ6",
+        faiss.ScalarQuantizer.QT_4bit: "SQ4",
+    }
+    sq = getattr(ivf, "sq", None)
+    return names.get(sq.qtype, "SQ") if sq is not None else type(ivf).__name__

@@ -9,7 +9,7 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api.errors import install_error_handlers
-from service.api.routes import atlases, frames, health, jobs, queries
+from service.api.routes import atlases, features, frames, health, jobs, queries
 from service.config import Settings
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
@@ -49,6 +49,13 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
-    for router in (health.router, atlases.router, frames.router, queries.router, jobs.router):
+    for router in (
+        health.router,
+        atlases.router,
+        frames.router,
+        features.router,
+        queries.router,
+        jobs.router,
+    ):
         app.include_router(router, prefix="/v1")
     return app

@@ -8,7 +8,8 @@ The index type follows the atlas's size (:class:`IndexPolicy`, figures in
 vectors fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes (``IndexIVFScalarQuantizer``)
 whose code precision is the finest that fits the per-frame memory budget. The inverted file is
 trained on the atlas's own vectors when the atlas crosses that size and retrained when it has
-grown about fourfold since (its list count no longer fits its size). Both types keep what the
+grown about fourfold since (its list count no longer fits its size), in a background thread
+while the current index keeps serving. Both types keep what the
 service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
 through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed lists
 hold too few of them).
@@ -52,6 +53,8 @@ class IndexPolicy:
         nprobe: inverted lists visited per query.
         train_per_list: training vectors per list (k-means sample, taken in id order).
         kmeans_iterations: k-means iterations when (re)training.
+        background: train and fill a new index in a thread while the old one serves (the
+            service); off, the add that crosses a threshold waits for it.
     """
 
     flat_max_bytes: int = 32 << 20
@@ -59,6 +62,7 @@ class IndexPolicy:
     nprobe: int = 32
     train_per_list: int = 64
     kmeans_iterations: int = 10
+    background: bool = True
 
     def flat_max(self, dim: int) -> int:
         """The most frames searched exactly at ``dim``."""
@@ -92,6 +96,9 @@ class AtlasIndex:
             raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
         self._robot_of: dict[int, str] = {}
         self._lock = threading.RLock()
+        # While a rebuild runs: the adds and removals to replay on the new index.
+        self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
+        self._rebuilder: threading.Thread | None = None
 
     @property
     def size(self) -> int:
@@ -132,7 +139,7 @@ class AtlasIndex:
 
         Idempotent: ids already held are skipped, so a frame caught up by reconciliation and
         added by its own ingest call is indexed once. Returns how many were added. An add that
-        takes the atlas past a size threshold of the policy rebuilds the index first.
+        takes the atlas past a size threshold of the policy starts a rebuild of the index.
         """
         vectors = np.ascontiguousarray(vectors, dtype=np.float32)
         if vectors.shape != (len(ids), self.dim):
@@ -142,7 +149,7 @@ class AtlasIndex:
             if not new.any():
                 return 0
             new_ids = np.asarray(ids, dtype=np.int64)[new]
-            self._regrow(self.size + len(new_ids), new_ids, vectors[new])
+            self._regrow(new_ids, vectors[new])
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
             return int(new.sum())
@@ -156,11 +163,14 @@ class AtlasIndex:
         if len(ids) == 0:
             return 0
         with self._lock:
-            removed = int(self._index.remove_ids(np.asarray(ids, dtype=np.int64)))
+            ids = np.asarray(ids, dtype=np.int64)
+            removed = int(self._index.remove_ids(ids))
             for i in ids:
                 self._robot_of.pop(int(i), None)
-            if self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:
-                self._rebuild(self._flat_like())  # shrunk well below the threshold: exact again
+            if self._log is not None:
+                self._log.append(("remove", ids, None))
+            elif self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:
+                self._start_rebuild(self.size)  # shrunk well below the threshold: exact again
             return removed
 
     def search(self, vector: np.ndarray, k: int, robot_id: str | None = None) -> list[Hit]:
@@ -206,21 +216,73 @@ class AtlasIndex:
 
     # ----- choosing the type by size -------------------------------------------------------
 
-    def _regrow(self, new_size: int, ids: np.ndarray, vectors: np.ndarray) -> None:
-        """Add ``vectors``, first switching to (or retraining) the inverted file when the
-        atlas's size calls for it. Retraining uses the held vectors plus the new ones."""
-        ivf = self._ivf()
-        wanted = self._wanted_nlist(new_size)
-        if (ivf is None and wanted is None) or (
-            ivf is not None and wanted is not None and wanted < 2 * ivf.nlist
-        ):
-            self._index.add_with_ids(vectors, ids)
-            return
+    def _regrow(self, ids: np.ndarray, vectors: np.ndarray) -> None:
+        """Add ``vectors``; when the atlas's size calls for another index (exact to inverted
+        file, or more lists), start rebuilding it from the held vectors."""
         self._index.add_with_ids(vectors, ids)
-        self._rebuild(self._flat_like() if wanted is None else self._ivf_like(new_size))
+        if self._log is not None:
+            self._log.append(("add", ids, vectors))
+        else:
+            self._regrow_if_due()
 
     def _wanted_nlist(self, size: int) -> int | None:
         return None if size <= self.policy.flat_max(self.dim) else ivf_nlist(size)
+
+    def _start_rebuild(self, size: int) -> None:
+        """Snapshot the held vectors (under the lock), then train and fill the new index.
+
+        With ``policy.background`` the slow part (k-means, assigning every vector) runs in a
+        thread while the current index keeps serving; adds and removals made meanwhile are
+        logged and replayed on the new index before it replaces the old one. A foreground
+        rebuild's result depends only on the sequence of adds and removals; a background one
+        trains on the snapshot taken when it started, so a later threshold crossed meanwhile is
+        handled by the next rebuild, and the codes can differ in the last digits.
+        """
+        ids = np.sort(self.ids())
+        vectors = self._reconstruct(ids)
+        target = self._flat_like() if self._wanted_nlist(size) is None else self._ivf_like(size)
+        self._log = []
+        if not self.policy.background:
+            self._finish_rebuild(target, ids, vectors)
+            return
+        self._rebuilder = threading.Thread(
+            target=self._finish_rebuild, args=(target, ids, vectors), daemon=True
+        )
+        self._rebuilder.start()
+
+    def _finish_rebuild(self, target: Any, ids: np.ndarray, vectors: np.ndarray) -> None:
+        try:
+            if not target.is_trained:
+                nlist = faiss.extract_index_ivf(target).nlist
+                step = max(1, len(ids) // (self.policy.train_per_list * nlist))
+                target.train(vectors[::step])  # evenly spaced in id order: deterministic
+            target.add_with_ids(vectors, ids)
+        except Exception:
+            log.exception("index rebuild failed; the current index keeps serving")
+            with self._lock:
+                self._log = None
+            return
+        with self._lock:
+            for operation, op_ids, op_vectors in self._log or []:
+                if operation == "add":
+                    target.add_with_ids(op_vectors, op_ids)
+                else:
+                    target.remove_ids(op_ids)
+            self._index, self._log = target, None
+            log.info("index of %d frames rebuilt as %s", target.ntotal, self.describe())
+            self._regrow_if_due()  # the atlas may have grown past the next threshold meanwhile
+
+    def _regrow_if_due(self) -> None:
+        ivf, wanted = self._ivf(), self._wanted_nlist(self.size)
+        if (ivf is None and wanted is not None) or (
+            ivf is not None and wanted is not None and wanted >= 2 * ivf.nlist
+        ):
+            self._start_rebuild(self.size)
+
+    def wait_rebuilt(self) -> None:
+        """Block until rebuilds in progress (and any they chain) have replaced the index."""
+        while (thread := self._rebuilder) is not None and thread.is_alive():
+            thread.join()
 
     def _flat_like(self) -> Any:
         return _flat(self.dim)
@@ -231,18 +293,6 @@ class AtlasIndex:
         index = faiss.index_factory(self.dim, name, faiss.METRIC_INNER_PRODUCT)
         faiss.extract_index_ivf(index).cp.niter = self.policy.kmeans_iterations
         return index
-
-    def _rebuild(self, target: Any) -> None:
-        """Move every held vector into ``target`` (training it first when it needs it)."""
-        ids = np.sort(self.ids())
-        vectors = self._reconstruct(ids)
-        if not target.is_trained:
-            nlist = faiss.extract_index_ivf(target).nlist
-            step = max(1, len(ids) // (self.policy.train_per_list * nlist))
-            target.train(vectors[::step])  # an evenly spaced sample in id order: deterministic
-        target.add_with_ids(vectors, ids)
-        log.info("index of %d frames rebuilt as %s", len(ids), type(target).__name__)
-        self._index = target
 
     def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
         """The stored vectors of ``ids`` (exact for flat, decoded codes for the inverted file)."""

@@ -11,7 +11,7 @@ from service.index import AtlasIndex, IndexPolicy, ivf_nlist
 
 DIM = 32
 # Exact up to 100 frames at 32-d (100 x 32 x 4 bytes), so a few thousand frames reach the IVF.
-SMALL = IndexPolicy(flat_max_bytes=100 * DIM * 4, nprobe=8)
+SMALL = IndexPolicy(flat_max_bytes=100 * DIM * 4, nprobe=8, background=False)
 
 
 def clustered(n: int, seed: int = 0, per_place: int = 5) -> np.ndarray:
@@ -115,3 +115,35 @@ def test_building_twice_gives_the_same_answers() -> None:
     b, _ = filled(3000)
     for q in data[::53]:
         assert a.search(q, 5) == b.search(q, 5)
+
+
+def test_background_rebuild_keeps_serving_and_replays_changes() -> None:
+    policy = IndexPolicy(flat_max_bytes=100 * DIM * 4, nprobe=8, background=True)
+    index, data = filled(1000, policy)
+    index.wait_rebuilt()
+    assert not index.exact
+    before = index.describe()
+    grow = clustered(4000, seed=7)
+    index.add(np.arange(5000, 9000), grow, ["r0"] * 4000)  # 5000 frames: calls for more lists
+    # while the new index trains, the old one answers, and changes are logged
+    assert index.search(data[3], 1)[0].frame_id == 1003
+    index.remove(np.array([1003]))
+    index.add(np.array([20_000]), data[3:4], ["r0"])
+    index.wait_rebuilt()
+    assert index.describe() != before
+    assert index.size == 5000
+    ids = set(index.ids().tolist())
+    assert 1003 not in ids and 20_000 in ids
+    assert index.search(data[3], 1)[0].frame_id == 20_000
+
+
+def test_background_and_foreground_builds_agree() -> None:
+    background = IndexPolicy(flat_max_bytes=100 * DIM * 4, nprobe=8, background=True)
+    a, data = filled(3000, background)
+    a.wait_rebuilt()
+    b, _ = filled(3000)
+    assert a.describe() == b.describe()
+    for q in data[::61]:
+        hits_a, hits_b = a.search(q, 1), b.search(q, 1)
+        assert hits_a[0].frame_id == hits_b[0].frame_id
+        assert abs(hits_a[0].similarity - hits_b[0].similarity) < 1e-3

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from compute_floor import MATMUL_SIZE
 
 from service.errors import WeightsUnavailable
 from service.index import AtlasIndex
@@ -171,13 +170,9 @@ def main() -> None:
 
         report(f"database write (SQLite WAL, {local.count} kp)", timed(write, args.repeats * 3))
 
-    from compute_floor import disk_floor_rows
+    from compute_floor import FLOOR_HEADER, disk_floor_rows
 
-    print(
-        f"\n| extractor and input | GFLOP (counted) | median ms | machine fp32 GFLOP/s "
-        f"(matmul {MATMUL_SIZE}, {torch.get_num_threads()} threads) | floor ms | time / floor |"
-    )
-    print("| --- | --- | --- | --- | --- | --- |")
+    print(f"\n{FLOOR_HEADER}")
     for row in disk_floor_rows(rgb, args.floor_long_side, 2048, args.floor_repeats):
         print(row, flush=True)
 

@@ -7,7 +7,9 @@ fills an atlas over HTTP with the Gardens Point frames, then times single querie
 - ingest throughput: frames/s posting images one by one (single client), and through the
   service path in-process (``AtlasService.ingest_frame``, no HTTP) for comparison;
 - query latency p50 / p95 posting the image, and posting precomputed features
-  (``query:features``: the server only fuses and searches).
+  (``query:features``: the server only fuses and searches);
+- the server process's CPU time per query (user + system, from /proc): what a query costs
+  the machine, which other jobs sharing the cores do not inflate.
 
     python benchmarks/http_latency.py --presets fast default
     LOOPNET_BACKBONE=mobilenetv2 python benchmarks/http_latency.py --presets paper
@@ -42,8 +44,16 @@ from service.ml.presets import ModelPreset
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds a process has used so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 @contextmanager
-def served(preset: str, port: int, threads: int, data_dir: Path) -> Iterator[httpx.Client]:
+def served(
+    preset: str, port: int, threads: int, data_dir: Path
+) -> Iterator[tuple[httpx.Client, int]]:
     """A ``loopnet serve`` process with ``preset``; the client once it is ready."""
     env = {
         **os.environ,
@@ -72,7 +82,7 @@ def served(preset: str, port: int, threads: int, data_dir: Path) -> Iterator[htt
             except httpx.TransportError:
                 pass
             time.sleep(0.2)
-        yield client
+        yield client, server.pid
     finally:
         client.close()
         server.terminate()
@@ -87,7 +97,7 @@ def bench_preset(preset: str, args: argparse.Namespace, images: list[Path]) -> N
     queries = sorted((DATA / "gardenspoint_first10" / "query").glob("*.jpg"))
     with (
         tempfile.TemporaryDirectory() as tmp,
-        served(preset, args.port, args.threads, Path(tmp)) as client,
+        served(preset, args.port, args.threads, Path(tmp)) as (client, pid),
     ):
         ready = client.get("/ready").json()
         assert client.post("/atlases", json={"name": "bench"}).status_code == 201
@@ -113,7 +123,9 @@ def bench_preset(preset: str, args: argparse.Namespace, images: list[Path]) -> N
         payloads = [q.read_bytes() for q in queries]
         for data in payloads[:3]:
             query(data)  # warm-up
+        cpu_before = cpu_seconds(pid)
         image_ms = [query(payloads[i % len(payloads)]) for i in range(args.queries)]
+        image_cpu_ms = (cpu_seconds(pid) - cpu_before) / args.queries * 1000.0
 
         signature = client.get("/atlases/bench").json()["feature_signature"]
         pipeline = FeaturePipeline(_preset_of(signature))
@@ -128,13 +140,16 @@ def bench_preset(preset: str, args: argparse.Namespace, images: list[Path]) -> N
             return (time.perf_counter() - begin) * 1000.0
 
         query_features(features[0])
+        cpu_before = cpu_seconds(pid)
         features_ms = [query_features(features[i % len(features)]) for i in range(args.queries)]
+        features_cpu_ms = (cpu_seconds(pid) - cpu_before) / args.queries * 1000.0
     size = np.mean([len(f) for f in features]) / 1024
     in_process = bench_in_process(preset, args.threads, images)
     print(
         f"| {preset} ({ready['local_extractor']}, {ready['backbone']}) | "
         f"{len(images) / ingest_s:.1f} | {in_process:.1f} | {percentiles(image_ms)} | "
-        f"{percentiles(features_ms)} ({size:.0f} KiB payload) |",
+        f"{image_cpu_ms:.1f} | {percentiles(features_ms)} ({size:.0f} KiB payload) | "
+        f"{features_cpu_ms:.1f} |",
         flush=True,
     )
 
@@ -194,9 +209,10 @@ def main() -> None:
     )
     print(
         "| preset | ingest frames/s, HTTP | ingest frames/s, in-process | query over HTTP (image) "
-        "| query over HTTP (precomputed features) |"
+        "| server CPU ms per query | query over HTTP (precomputed features) "
+        "| server CPU ms per query |"
     )
-    print("| --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for preset in args.presets:
         bench_preset(preset, args, images)
 

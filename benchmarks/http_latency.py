@@ -205,7 +205,7 @@ def main() -> None:
     print(
         f"machine: {platform.machine()}, {os.cpu_count()} cores, server torch threads "
         f"{args.threads}, load average {os.getloadavg()[0]:.1f}; {args.frames} frames ingested "
-        f"(Gardens Point night, 960x540 JPEG), {args.queries} queries (day, 960x540), k=5\n"
+        f"(Gardens Point night, 640x360 JPEG), {args.queries} queries (day, 960x540), k=5\n"
     )
     print(
         "| preset | ingest frames/s, HTTP | ingest frames/s, in-process | query over HTTP (image) "

@@ -151,16 +151,22 @@ MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] 
 }
 
 
+@pytest.fixture(scope="module")
+def night_features(pipeline) -> FrameFeatures:  # type: ignore[no-untyped-def]
+    return features_of(pipeline, gardens_point_day_night(2, "ref"))
+
+
 @pytest.mark.parametrize("case", sorted(MALFORMED))
 def test_malformed_payloads_are_refused_and_write_nothing(
     client: TestClient,
     pipeline,  # type: ignore[no-untyped-def]
+    night_features: FrameFeatures,
     case: str,
 ) -> None:
     create_atlas(client)
-    features = features_of(pipeline, gardens_point_day_night(2, "ref"))
-    add_frame(client, gardens_point_day_night(0, "ref"))
+    features = night_features
     good = encode_features(features, pipeline.signature)
+    assert post_frame(client, good).status_code == 201  # the good payload is accepted
     make, message = MALFORMED[case]
     bad = make(good, pipeline.signature, features)
     before = stored_state(client)

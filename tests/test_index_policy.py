@@ -37,6 +37,8 @@ def exact_top1(data: np.ndarray, queries: np.ndarray) -> np.ndarray:
 
 
 def test_policy_picks_the_finest_codes_that_fit_the_budget() -> None:
+    assert IndexPolicy().quantizer(256) == "SQfp16"
+    assert IndexPolicy().quantizer(1408) == "SQ8"  # the default budget favours recall
     policy = IndexPolicy(bytes_per_frame=1100)
     assert policy.quantizer(256) == "SQfp16"  # 512 + 8 bytes
     assert policy.quantizer(1024) == "SQ8"

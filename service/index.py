@@ -4,15 +4,15 @@ The database is the source of truth; the index file under the data directory is 
 ``reconcile`` brings back in step with the database after a restart or a crash.
 
 The index type follows the atlas's size (:class:`IndexPolicy`, figures in
-``benchmarks/RESULTS.md``, *Search at scale*): exact search (``IndexFlatIP``) while its
-vectors fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes (``IndexIVFScalarQuantizer``)
-whose code precision is the finest that fits the per-frame memory budget. The inverted file is
-trained on the atlas's own vectors when the atlas crosses that size and retrained when it has
-grown about fourfold since (its list count no longer fits its size), in a background thread
-while the current index keeps serving. Both types keep what the
+``benchmarks/RESULTS.md``, *Search at scale*): exact search (``IndexFlatIP``) while its vectors
+fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes
+(``IndexIVFScalarQuantizer``) whose precision is the finest that fits the per-frame memory
+budget. The inverted file is trained on the atlas's own vectors when the atlas crosses that
+size and retrained when it has grown about fourfold since (its list count no longer fits its
+size), in a background thread while the current index keeps serving. Both types keep what the
 service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
-through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed lists
-hold too few of them).
+through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
+lists hold too few of them).
 """
 
 from __future__ import annotations

@@ -1,6 +1,8 @@
-"""Per-stage latency of ingest and query: decode, DISK at several long sides, backbone, heads,
-search, geometric verification of one candidate (MNN and LightGlue matching, RANSAC for F and
-for E + pose; DISK at 512 px, day query vs its night reference), database write. Prints medians (and p90) over repeated runs on one real frame.
+"""Per-stage latency of ingest and query: decode, DISK and XFeat at several long sides,
+backbones, heads, search, geometric verification of one candidate (MNN and LightGlue matching,
+RANSAC for F and for E + pose; DISK at 512 px, day query vs its night reference), database
+write; then DISK against this machine's fp32 compute floor (``compute_floor.py``). Prints
+medians (and p90) over repeated runs on one real frame.
 
     python benchmarks/stage_latency.py --image ../shared/data/gardenspoint_first10/query/0.jpg
 
@@ -100,7 +102,12 @@ def main() -> None:
         "--image", type=Path, default=Path("../shared/data/gardenspoint_first10/query/0.jpg")
     )
     parser.add_argument("--long-sides", type=int, nargs="+", default=[256, 512, 1024])
+    parser.add_argument("--xfeat-long-sides", type=int, nargs="+", default=[320, 512])
     parser.add_argument("--max-keypoints", type=int, default=1024)
+    parser.add_argument(
+        "--floor-long-side", type=int, default=1024, help="DISK side checked against the floor"
+    )
+    parser.add_argument("--floor-repeats", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument(
         "--index-size", type=int, default=10_000, help="synthetic frames in the index"
@@ -127,21 +134,27 @@ def main() -> None:
         local = disk.extract(rgb)
         report(f"DISK long side {side} ({local.count} kp)", samples)
     assert local is not None
+    for side in args.xfeat_long_sides:
+        xfeat = build_local_extractor(
+            LocalExtractorConfig(name="xfeat", long_side=side, max_keypoints=args.max_keypoints)
+        )
+        samples = timed(partial(xfeat.extract, rgb), args.repeats)
+        report(f"XFeat long side {side} ({xfeat.extract(rgb).count} kp)", samples)
     report(
         "aggregate descriptors (D)",
         timed(lambda: aggregate_descriptors(local.descriptors, local.scores), args.repeats * 3),
     )
 
     dims = {}
-    for name in ("mobilenetv2", "resnet18"):
+    for name, size in (("mobilenetv2", 160), ("mobilenetv2", 224), ("resnet18", 224)):
+        config = BackboneConfig(name=name, input_size=size)
         try:
-            backbone = build_backbone(BackboneConfig(name=name))
-            label = f"backbone {name} 224x224"
+            backbone = build_backbone(config)
+            label = f"backbone {name} {size}x{size}"
         except WeightsUnavailable:
             # Same compute with random weights: the timing holds, the vectors mean nothing.
-            config = BackboneConfig(name=name)
             backbone = GlobalBackbone(config, trunk=BACKBONES[name].make_trunk())
-            label = f"backbone {name} 224x224 (random init)"
+            label = f"backbone {name} {size}x{size} (random init)"
         dims[name] = backbone.dim
         report(label, timed(partial(backbone.describe, rgb), args.repeats))
 
@@ -203,6 +216,12 @@ def main() -> None:
                 )
 
         report(f"database write (SQLite WAL, {local.count} kp)", timed(write, args.repeats * 3))
+
+    from compute_floor import FLOOR_HEADER, disk_floor_rows
+
+    print(f"\n{FLOOR_HEADER}")
+    for row in disk_floor_rows(rgb, args.floor_long_side, 2048, args.floor_repeats):
+        print(row, flush=True)
 
 
 if __name__ == "__main__":

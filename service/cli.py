@@ -110,7 +110,7 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
     ev.add_argument("--reference", help="traversals: the map's folder")
     ev.add_argument("--query", help="traversals: the queries' folder")
     ev.add_argument("--submap-size", type=int, default=5, help="consecutive frames per submap")
-    ev.add_argument("--preset", default="default", help="model preset (default, paper)")
+    ev.add_argument("--preset", default="default", help="model preset (default, fast, paper)")
     ev.add_argument("--long-side", type=int, help="local extractors' working long side")
     ev.add_argument("--max-keypoints", type=int, help="keypoints per frame")
     ev.add_argument("--backbone", help="global backbone (mobilenetv2, resnet18)")

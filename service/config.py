@@ -21,7 +21,9 @@ class Settings(BaseSettings):
     database_url: str | None = Field(
         None, description="SQLAlchemy URL; default: a SQLite file in the data directory."
     )
-    model_preset: str = Field("default", description="'default' (CPU-sized) or 'paper'.")
+    model_preset: str = Field(
+        "default", description="'default' (CPU-sized), 'fast' (XFeat, tens of ms) or 'paper'."
+    )
     backbone: str | None = Field(None, description="Override the preset's global backbone.")
     long_side: int | None = Field(None, ge=32, le=4096, description="Override DISK's long side.")
     max_keypoints: int | None = Field(None, ge=16, le=16384, description="Override top-n.")

@@ -42,4 +42,5 @@ def add_stored_frames(
             added += index.add(ids, embed_vectors(heads, local, global_), robots)
             if progress is not None:
                 progress(added)
+    index.wait_rebuilt()  # a bulk build ends with the index type its size calls for
     return added

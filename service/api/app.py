@@ -12,6 +12,7 @@ from service import __version__
 from service.api.errors import install_error_handlers
 from service.api.routes import (
     atlases,
+    features,
     frames,
     health,
     jobs,
@@ -65,7 +66,17 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
-    routers = (health, atlases, frames, queries, jobs, keys, loop_closures, snapshots)
+    routers = (
+        health,
+        atlases,
+        frames,
+        features,
+        queries,
+        jobs,
+        keys,
+        loop_closures,
+        snapshots,
+    )
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
     return app

@@ -1,8 +1,11 @@
 """Named model presets: which extractor, at what size, with which backbone.
 
 ``default`` is sized for a CPU (DISK at long side 512: about 1.1 s a frame on 2 cores, against
-4.7 s at 1024); ``paper`` uses the paper's settings (DISK at 1024, ResNet-18). Figures come
-from ``benchmarks/stage_latency.py``.
+4.7 s at 1024); ``paper`` uses the paper's settings (DISK at 1024, ResNet-18); ``fast`` is for
+CPU-only robots and servers that must answer within tens of milliseconds (XFeat at long side
+320, MobileNetV2 at 160 px: about an eighth of ``default``'s cost). Figures come from
+``benchmarks/stage_latency.py`` and ``benchmarks/http_latency.py``; accuracy from
+``loopnet eval`` (benchmarks/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -27,6 +30,11 @@ PRESETS: dict[str, ModelPreset] = {
         "default",
         LocalExtractorConfig(name="disk", long_side=512, max_keypoints=1024, nms_window=5),
         BackboneConfig(name="mobilenetv2", input_size=224, pooling="gem"),
+    ),
+    "fast": ModelPreset(
+        "fast",
+        LocalExtractorConfig(name="xfeat", long_side=320, max_keypoints=512, nms_window=5),
+        BackboneConfig(name="mobilenetv2", input_size=160, pooling="gem"),
     ),
     "paper": ModelPreset(
         "paper",

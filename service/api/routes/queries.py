@@ -56,12 +56,12 @@ IntrinsicsField = Annotated[
 ]
 
 
-def _intrinsics(raw: str | None) -> Intrinsics | None:
+def intrinsics_from_form(raw: str | None) -> Intrinsics | None:
     parsed = parse_json_field("intrinsics", raw, IntrinsicsIn)
     return Intrinsics(**parsed.model_dump()) if parsed else None
 
 
-def _filter(
+def filter_from_form(
     service: AtlasService,
     robot_id: str | None,
     robots: str,
@@ -109,7 +109,7 @@ def query(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
-    query_filter = _filter(
+    query_filter = filter_from_form(
         service,
         robot_id,
         robots,
@@ -125,7 +125,7 @@ def query(
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         k=k,
         query_filter=query_filter,
-        intrinsics=_intrinsics(intrinsics),
+        intrinsics=intrinsics_from_form(intrinsics),
     )
     record_if_inter_robot(
         service.sessions, robot_id=robot_id or None, result=result, source="query"
@@ -167,7 +167,7 @@ def observe(
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> ObserveOut:
     pose_in = parse_json_field("pose", pose, PoseIn)
-    query_filter = _filter(
+    query_filter = filter_from_form(
         service,
         robot_id,
         robots,
@@ -185,7 +185,7 @@ def observe(
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         timestamp=timestamp,
         pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
-        intrinsics=_intrinsics(intrinsics),
+        intrinsics=intrinsics_from_form(intrinsics),
         k=k,
         query_filter=query_filter,
     )

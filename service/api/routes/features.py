@@ -1,0 +1,151 @@
+"""Frames and queries from precomputed features (robots that run the extractor on board).
+
+The payload (an ``.npz`` archive) is described in :mod:`service.features_payload` and the
+README; the server checks it against the atlas's feature signature, then only aggregates, fuses
+and searches: no image is decoded and no CNN runs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, UploadFile, status
+
+from service.api.auth import RobotAccess
+from service.api.deps import ServiceDep
+from service.api.routes.frames import get_frame
+from service.api.routes.queries import (
+    ExcludeFrames,
+    ExcludeSeconds,
+    IntrinsicsField,
+    RobotId,
+    Robots,
+    Since,
+    SubmapFilter,
+    Until,
+    filter_from_form,
+    intrinsics_from_form,
+)
+from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn, QueryOut
+from service.api.uploads import parse_json_field, read_image_upload
+from service.atlas_service import AtlasService
+from service.features_payload import decode_features
+from service.geometry import Intrinsics, Pose
+from service.loop_closures import record_if_inter_robot
+from service.ml.features import FrameFeatures
+from service.storage import repository as repo
+
+router = APIRouter(tags=["features"])
+ERRORS: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorOut, "description": "Unknown atlas or submap"},
+    409: {"model": ErrorOut, "description": "The atlas was built with other features"},
+    413: {"model": ErrorOut, "description": "Payload over the byte limit"},
+    422: {"model": ErrorOut, "description": "Malformed payload or a bad field"},
+}
+PAYLOAD_DOC = (
+    ".npz archive: signature, image_size, keypoints, descriptors, scores, global_vector "
+    "(see the README, 'Precomputed features')."
+)
+
+
+def read_features(service: AtlasService, atlas: str, upload: UploadFile) -> FrameFeatures:
+    """The checked features of a payload posted for ``atlas`` (a 4xx before any write)."""
+    data = read_image_upload(upload, service.settings.max_upload_bytes)
+    with service.sessions() as session:
+        signature = repo.get_atlas(session, name=atlas).feature_signature
+    return decode_features(data, signature, max_image_pixels=service.settings.max_image_pixels)
+
+
+@router.post(
+    "/atlases/{atlas}/frames:features",
+    response_model=FrameOut,
+    status_code=status.HTTP_201_CREATED,
+    responses=ERRORS,
+    summary="Add a frame described by precomputed features",
+)
+def add_frame_features(
+    atlas: str,
+    service: ServiceDep,
+    access: RobotAccess,
+    features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
+    submap: Annotated[str, Form(description="Name of an existing submap.")],
+    robot_id: Annotated[str, Form(description="The robot that took the frame.")],
+    timestamp: Annotated[float | None, Form(description="Capture time, seconds.")] = None,
+    pose: Annotated[
+        str | None,
+        Form(description='JSON: {"rotation": [w, x, y, z], "translation": [x, y, z]}'),
+    ] = None,
+    intrinsics: Annotated[
+        str | None, Form(description='JSON: {"fx": .., "fy": .., "cx": .., "cy": ..}')
+    ] = None,
+) -> FrameOut:
+    pose_in = parse_json_field("pose", pose, PoseIn)
+    intrinsics_in = parse_json_field("intrinsics", intrinsics, IntrinsicsIn)
+    frame = service.ingest_features(
+        atlas_name=atlas,
+        submap_name=submap,
+        robot_id=robot_id,
+        features=read_features(service, atlas, features),
+        timestamp=timestamp,
+        pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
+        intrinsics=Intrinsics(**intrinsics_in.model_dump()) if intrinsics_in else None,
+    )
+    return get_frame(atlas, frame.id, service, access)
+
+
+@router.post(
+    "/atlases/{atlas}/query:features",
+    response_model=QueryOut,
+    responses=ERRORS,
+    summary="Find the frames and submap that precomputed features revisit",
+)
+def query_features(
+    atlas: str,
+    service: ServiceDep,
+    _: RobotAccess,
+    features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
+    k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
+    robot_id: RobotId = None,
+    robots: Robots = "all",
+    submap: SubmapFilter = None,
+    since: Since = None,
+    until: Until = None,
+    timestamp: Annotated[
+        float | None, Form(description="Capture time of the query frame, seconds.")
+    ] = None,
+    intrinsics: IntrinsicsField = None,
+    exclude_recent_frames: ExcludeFrames = None,
+    exclude_recent_seconds: ExcludeSeconds = None,
+) -> QueryOut:
+    query_filter = filter_from_form(
+        service,
+        robot_id,
+        robots,
+        submap,
+        since,
+        until,
+        timestamp,
+        exclude_recent_frames,
+        exclude_recent_seconds,
+    )
+    start = time.perf_counter()
+    decoded = read_features(service, atlas, features)
+    decode_ms = (time.perf_counter() - start) * 1000.0
+    result = service.query_features(
+        atlas_name=atlas,
+        features=decoded,
+        k=k,
+        query_filter=query_filter,
+        intrinsics=intrinsics_from_form(intrinsics),
+    )
+    result.timings_ms = {
+        "decode_features": round(decode_ms, 3),
+        **result.timings_ms,
+        "total": round((time.perf_counter() - start) * 1000.0, 3),
+    }
+    record_if_inter_robot(
+        service.sessions, robot_id=robot_id or None, result=result, source="query"
+    )
+    return QueryOut.model_validate(asdict(result))

@@ -1,0 +1,199 @@
+"""Precomputed features from robots that run the extractor on board: the payload and its checks.
+
+A robot with its own accelerator runs the atlas's local extractor and global backbone itself
+and posts what they produced; the server then only aggregates, fuses and searches. The payload
+is an ``.npz`` archive (NumPy's zip of ``.npy`` arrays, written by ``numpy.savez`` or by any
+language that can write a zip and a 128-byte header) holding exactly:
+
+=================  ==============  =======================================================
+array              dtype           meaning
+=================  ==============  =======================================================
+``signature``      unicode, 0-d    JSON of the atlas's ``feature_signature`` (must match)
+``image_size``     integer, (2,)   (width, height) of the frame the extractor saw
+``keypoints``      float, (N, 2)   (x, y) in that frame's pixels
+``descriptors``    float, (N, D)   L2-normalised local descriptors (D: the extractor's)
+``scores``         float, (N,)     detection scores
+``global_vector``  float, (C,)     L2-normalised backbone vector (C: the backbone's)
+=================  ==============  =======================================================
+
+Everything is checked before anything is written: the signature, the names, shapes, dtypes and
+sizes, finite values, unit norms, keypoints inside the frame, at most the signature's
+``max_keypoints``. The archive's declared sizes are read before any array is inflated, so a zip
+bomb is refused unopened. :func:`encode_features` writes the payload from the same
+:class:`FrameFeatures` the server's own pipeline produces.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from typing import Any
+
+import numpy as np
+
+from service.errors import InvalidInput
+from service.ml.aggregation import aggregate_descriptors
+from service.ml.backbones.registry import BACKBONES
+from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.local_extractors import LOCAL_EXTRACTORS
+
+ARRAYS = ("signature", "image_size", "keypoints", "descriptors", "scores", "global_vector")
+NORM_TOLERANCE = 1e-3  # unit vectors sent as float16 are within ~1e-3 of norm 1
+HEADER_BYTES = 4096  # generous room for each .npy header
+
+
+def encode_features(features: FrameFeatures, signature: dict[str, Any]) -> bytes:
+    """The ``.npz`` payload of ``features`` extracted with ``signature`` (what a robot posts)."""
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        signature=np.array(json.dumps(signature, sort_keys=True)),
+        image_size=np.array(features.image_size, np.int64),
+        keypoints=features.local.keypoints.astype(np.float32),
+        descriptors=features.local.descriptors.astype(np.float32),
+        scores=features.local.scores.astype(np.float32),
+        global_vector=features.global_vector.astype(np.float32),
+    )
+    return buffer.getvalue()
+
+
+def decode_features(
+    data: bytes, signature: dict[str, Any], *, max_image_pixels: int
+) -> FrameFeatures:
+    """Check a payload against the atlas's ``signature`` and turn it into :class:`FrameFeatures`.
+
+    Raises :class:`InvalidInput` (HTTP 422) saying what is wrong.
+    """
+    local_dim, global_dim, max_keypoints = _dimensions(signature)
+    arrays = _read_archive(data, _size_limits(local_dim, global_dim, max_keypoints))
+    sent = _signature_of(arrays["signature"])
+    if sent != signature:
+        raise InvalidInput(
+            f"the features were extracted with {sent}, but this atlas holds features of "
+            f"{signature}; extract them with the atlas's settings"
+        )
+    width, height = _image_size(arrays["image_size"], max_image_pixels)
+    keypoints = _float_array("keypoints", arrays["keypoints"], 2)
+    count = len(keypoints)
+    if count > max_keypoints:
+        raise InvalidInput(f"{count} keypoints sent; the atlas keeps at most {max_keypoints}")
+    descriptors = _float_array("descriptors", arrays["descriptors"], 2)
+    scores = _float_array("scores", arrays["scores"], 1)
+    global_vector = _float_array("global_vector", arrays["global_vector"], 1)
+    if descriptors.shape != (count, local_dim):
+        raise InvalidInput(
+            f"descriptors must be {count} x {local_dim} (one {local_dim}-d row per keypoint), "
+            f"got {descriptors.shape}"
+        )
+    if scores.shape != (count,):
+        raise InvalidInput(f"scores must hold one value per keypoint ({count}), got {scores.shape}")
+    if global_vector.shape != (global_dim,):
+        raise InvalidInput(
+            f"global_vector must have {global_dim} values, got {global_vector.shape}"
+        )
+    inside = (keypoints >= -0.5) & (keypoints <= np.array([width, height]) - 0.5)
+    if not inside.all():
+        raise InvalidInput(f"keypoints must lie inside the {width}x{height} frame")
+    _check_unit("descriptors", descriptors)
+    _check_unit("global_vector", global_vector[None])
+    local = LocalFeatures(keypoints, descriptors, scores)
+    return FrameFeatures(
+        local=local,
+        local_vector=aggregate_descriptors(descriptors, scores),
+        global_vector=global_vector,
+        image_size=(width, height),
+    )
+
+
+def _dimensions(signature: dict[str, Any]) -> tuple[int, int, int]:
+    """(descriptor dim, backbone dim, max keypoints) of a feature signature."""
+    local, backbone = signature["local"], signature["backbone"]
+    return (
+        LOCAL_EXTRACTORS[local["name"]].descriptor_dim,
+        BACKBONES[backbone["name"]].dim,
+        int(local["max_keypoints"]),
+    )
+
+
+def _size_limits(local_dim: int, global_dim: int, max_keypoints: int) -> dict[str, int]:
+    """The most bytes each member may inflate to (float64 at worst)."""
+    return {
+        "signature": 64 * 1024,
+        "image_size": HEADER_BYTES + 16,
+        "keypoints": HEADER_BYTES + max_keypoints * 2 * 8,
+        "descriptors": HEADER_BYTES + max_keypoints * local_dim * 8,
+        "scores": HEADER_BYTES + max_keypoints * 8,
+        "global_vector": HEADER_BYTES + global_dim * 8,
+    }
+
+
+def _read_archive(data: bytes, limits: dict[str, int]) -> dict[str, np.ndarray]:
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(data))
+        members = {info.filename: info for info in archive.infolist()}
+    except (zipfile.BadZipFile, ValueError) as exc:
+        raise InvalidInput(f"the features payload is not an .npz archive: {exc}") from exc
+    names = {name.removesuffix(".npy") for name in members}
+    if names != set(ARRAYS) or len(members) != len(ARRAYS):
+        raise InvalidInput(
+            f"the features payload must hold exactly the arrays {list(ARRAYS)}; "
+            f"got {sorted(members)}"
+        )
+    arrays = {}
+    for name in ARRAYS:
+        info = members[f"{name}.npy"]
+        if info.file_size > limits[name]:
+            raise InvalidInput(
+                f"array '{name}' inflates to {info.file_size} bytes; at most {limits[name]} fit "
+                "this atlas's features"
+            )
+        try:
+            with archive.open(info) as member:
+                arrays[name] = np.lib.format.read_array(
+                    io.BytesIO(member.read(limits[name] + 1)), allow_pickle=False
+                )
+        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+            raise InvalidInput(
+                f"array '{name}' of the features payload is unreadable: {exc}"
+            ) from exc
+    return arrays
+
+
+def _signature_of(array: np.ndarray) -> Any:
+    if array.shape != () or array.dtype.kind != "U":
+        raise InvalidInput("'signature' must be a 0-d unicode array holding JSON")
+    try:
+        return json.loads(str(array))
+    except json.JSONDecodeError as exc:
+        raise InvalidInput(f"'signature' is not valid JSON: {exc.msg}") from exc
+
+
+def _image_size(array: np.ndarray, max_pixels: int) -> tuple[int, int]:
+    if array.shape != (2,) or array.dtype.kind not in "iu":
+        raise InvalidInput("'image_size' must be two integers (width, height)")
+    width, height = int(array[0]), int(array[1])
+    if width < 1 or height < 1 or width * height > max_pixels:
+        raise InvalidInput(
+            f"image_size {width}x{height} is not a frame size (1 to {max_pixels} pixels)"
+        )
+    return width, height
+
+
+def _float_array(name: str, array: np.ndarray, ndim: int) -> np.ndarray:
+    if array.dtype not in (np.float16, np.float32, np.float64) or array.ndim != ndim:
+        raise InvalidInput(
+            f"'{name}' must be a {ndim}-d float16/32/64 array, got {array.ndim}-d {array.dtype}"
+        )
+    values = np.ascontiguousarray(array, dtype=np.float32)
+    if not np.isfinite(values).all():
+        raise InvalidInput(f"'{name}' holds NaN or infinite values")
+    return values
+
+
+def _check_unit(name: str, rows: np.ndarray) -> None:
+    norms = np.linalg.norm(rows, axis=1)
+    if len(norms) and np.abs(norms - 1.0).max() > NORM_TOLERANCE:
+        raise InvalidInput(
+            f"'{name}' rows must be L2-normalised (norms {norms.min():.4f}..{norms.max():.4f})"
+        )

@@ -15,7 +15,7 @@ from fastapi import Depends, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import Authenticator, Principal, Role
-from service.errors import NotReady
+from service.errors import Forbidden, NotReady
 
 bearer = HTTPBearer(auto_error=False, description="An API key from `loopnet keys create`.")
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False)
@@ -47,3 +47,16 @@ def require(role: Role) -> Callable[..., Principal]:
 RobotAccess = Annotated[Principal, Depends(require(Role.robot))]
 OperatorAccess = Annotated[Principal, Depends(require(Role.operator))]
 AdminAccess = Annotated[Principal, Depends(require(Role.admin))]
+
+
+def acting_robot(caller: Principal, robot_id: str | None) -> str | None:
+    """The robot a request acts as: a robot key is its robot (the key's name).
+
+    A robot key may only send its own name as ``robot_id`` (403 otherwise), and a request
+    that names none acts as that robot; operators, admins and the open service send any.
+    """
+    if caller.role is not Role.robot or caller.key_id is None:
+        return robot_id
+    if robot_id and robot_id != caller.name:
+        raise Forbidden(f"this key acts as robot '{caller.name}', not '{robot_id}'")
+    return caller.name

@@ -13,6 +13,7 @@ from service.api.app import create_app
 from service.auth import Role, create_key, hash_token
 from service.storage.db import transaction
 from service.storage.models import ApiKey
+from tests.api.helpers import stored_state
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 
 
@@ -68,7 +69,7 @@ def test_keys_turn_on_once_one_exists_and_roles_nest(open_client: TestClient) ->
     assert submap.status_code == 201
     frame = client.post(
         "/v1/atlases/campus/frames",
-        data={"submap": "s0", "robot_id": "r1"},
+        data={"submap": "s0", "robot_id": "robot-key"},  # a robot key is its robot
         files={"image": ("f.jpg", gardens_point_day_night(0, "ref"))},
         headers=bearer(robot),
     )
@@ -102,6 +103,48 @@ def test_keys_turn_on_once_one_exists_and_roles_nest(open_client: TestClient) ->
     assert client.get("/v1/atlases/other", headers=bearer(token)).status_code == 401
     bad_role = client.post("/v1/keys", json={"name": "x", "role": "god"}, headers=bearer(admin))
     assert bad_role.status_code == 422
+
+
+def test_a_robot_key_acts_as_its_robot_and_its_closures_are_recorded(
+    open_client: TestClient,
+) -> None:
+    client = open_client
+    assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+    assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+    sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+    with transaction(sessions) as session:
+        husky = create_key(session, name="husky-1", role=Role.robot, atlases=["campus"]).token
+        ops = create_key(session, name="ops", role=Role.operator, atlases=["campus"]).token
+    client.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
+    image = {"image": ("f.jpg", gardens_point_day_night(2, "ref"))}
+
+    def post_frame(robot_id: str, token: str) -> int:
+        data = {"submap": "s0", "robot_id": robot_id}
+        return client.post(
+            "/v1/atlases/campus/frames", data=data, files=image, headers=bearer(token)
+        ).status_code
+
+    before = stored_state(client)
+    assert post_frame("husky-2", husky) == 403  # posing as another robot: refused, nothing written
+    assert stored_state(client) == before
+    assert (
+        client.post(
+            "/v1/atlases/campus/query",
+            data={"robot_id": "husky-2"},
+            files=image,
+            headers=bearer(husky),
+        ).status_code
+        == 403
+    )
+    assert post_frame("husky-1", husky) == 201
+    assert post_frame("husky-9", ops) == 201  # operators may file frames for any robot
+
+    # no robot_id: the key's robot asks, so its own recent frame is excluded and the closure
+    # onto husky-9's frame of the same place is recorded as an inter-robot one
+    answer = client.post("/v1/atlases/campus/query", files=image, headers=bearer(husky)).json()
+    assert answer["match"]["robot_id"] == "husky-9" and answer["loop_closure"] is True
+    closures = client.get("/v1/atlases/campus/loop-closures", headers=bearer(husky)).json()
+    assert [(c["robot_id"], c["matched_robot_id"]) for c in closures] == [("husky-1", "husky-9")]
 
 
 def test_required_mode_refuses_without_any_key(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]

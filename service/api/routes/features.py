@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 
-from service.api.auth import RobotAccess
+from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
 from service.api.routes.frames import get_frame
 from service.api.routes.queries import (
@@ -86,7 +86,7 @@ def add_frame_features(
     frame = service.ingest_features(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=robot_id,
+        robot_id=acting_robot(access, robot_id) or robot_id,
         features=read_features(service, atlas, features),
         timestamp=timestamp,
         pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
@@ -104,7 +104,7 @@ def add_frame_features(
 def query_features(
     atlas: str,
     service: ServiceDep,
-    _: RobotAccess,
+    caller: RobotAccess,
     features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: RobotId = None,
@@ -119,6 +119,7 @@ def query_features(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
+    robot_id = acting_robot(caller, robot_id)
     query_filter = filter_from_form(
         service,
         robot_id,

@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
-from service.api.auth import OperatorAccess, RobotAccess
+from service.api.auth import OperatorAccess, RobotAccess, acting_robot
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field, read_image_upload
@@ -33,7 +33,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 def add_frame(
     atlas: str,
     service: ServiceDep,
-    _: RobotAccess,
+    caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Name of an existing submap.")],
     robot_id: Annotated[str, Form(description="The robot that took the frame.")],
@@ -51,7 +51,7 @@ def add_frame(
     frame = service.ingest_frame(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=robot_id,
+        robot_id=acting_robot(caller, robot_id) or robot_id,
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         timestamp=timestamp,
         pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile
 
-from service.api.auth import RobotAccess
+from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, IntrinsicsIn, ObserveOut, PoseIn, QueryOut
 from service.api.uploads import parse_json_field, read_image_upload
@@ -94,7 +94,7 @@ def filter_from_form(
 def query(
     atlas: str,
     service: ServiceDep,
-    _: RobotAccess,
+    caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: RobotId = None,
@@ -109,6 +109,7 @@ def query(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
+    robot_id = acting_robot(caller, robot_id)
     query_filter = filter_from_form(
         service,
         robot_id,
@@ -146,7 +147,7 @@ def query(
 def observe(
     atlas: str,
     service: ServiceDep,
-    _: RobotAccess,
+    caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
     robot_id: Annotated[str, Form(description="The robot that took the frame.")],
@@ -166,6 +167,7 @@ def observe(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> ObserveOut:
+    robot_id = acting_robot(caller, robot_id) or robot_id
     pose_in = parse_json_field("pose", pose, PoseIn)
     query_filter = filter_from_form(
         service,

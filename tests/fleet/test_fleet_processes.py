@@ -208,8 +208,13 @@ def test_two_api_processes_and_a_worker_on_postgres_and_redis(
     assert two.delete(f"/keys/{outsider_id[0]['id']}", headers=admin).status_code == 200
     assert one.get("/atlases/elsewhere", headers=outsider).status_code == 401
 
-    # a retraining job submitted through process 2 makes process 1 serve the new version
-    before = query(one, 11, robot_a)
+    # robot B's closure onto robot A's frame was recorded, and any process lists it
+    closures = one.get("/atlases/campus/loop-closures", headers=robot_b).json()
+    assert ("robot-b", "robot-a") in [(c["robot_id"], c["matched_robot_id"]) for c in closures]
+
+    # a retraining job submitted through process 2 makes process 1 serve the new version (robot
+    # B asks: a robot key is its robot, and robot A's own recent frames never match robot A)
+    before = query(one, 11, robot_b)
     assert before["model_version"] == 1
     job = two.post("/atlases/campus/jobs", json=QUICK_JOB, headers=operator)
     assert job.status_code == 202, job.text
@@ -222,7 +227,7 @@ def test_two_api_processes_and_a_worker_on_postgres_and_redis(
     finished, _ = eventually(240, job_done)
     assert finished["status"] == "succeeded", finished
     after, delay = eventually(
-        10, lambda: (a := query(one, 11, robot_a))["model_version"] == 2 and a
+        10, lambda: (a := query(one, 11, robot_b))["model_version"] == 2 and a
     )
     print(f"process 1 served model version 2 within {delay:.2f} s of the job's end")
     assert after["predicted_submap"]["available"] is True
@@ -231,4 +236,4 @@ def test_two_api_processes_and_a_worker_on_postgres_and_redis(
     # a deletion through process 2 reaches process 1's index
     deleted = two.delete(f"/atlases/campus/frames/{frames[11]}", headers=operator)
     assert deleted.status_code == 204
-    eventually(10, lambda: query(one, 11, robot_a)["match"]["frame_id"] != frames[11])
+    eventually(10, lambda: query(one, 11, robot_b)["match"]["frame_id"] != frames[11])

@@ -9,7 +9,7 @@ The parameter's value is the caller (:class:`~service.auth.Principal`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Annotated
+from typing import Annotated, overload
 
 from fastapi import Depends, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
@@ -49,6 +49,10 @@ OperatorAccess = Annotated[Principal, Depends(require(Role.operator))]
 AdminAccess = Annotated[Principal, Depends(require(Role.admin))]
 
 
+@overload
+def acting_robot(caller: Principal, robot_id: str) -> str: ...
+@overload
+def acting_robot(caller: Principal, robot_id: str | None) -> str | None: ...
 def acting_robot(caller: Principal, robot_id: str | None) -> str | None:
     """The robot a request acts as: a robot key is its robot (the key's name).
 

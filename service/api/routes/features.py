@@ -15,24 +15,29 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 
 from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
-from service.api.routes.frames import get_frame
-from service.api.routes.queries import (
+from service.api.forms import (
     ExcludeFrames,
     ExcludeSeconds,
-    IntrinsicsField,
+    FrameIntrinsics,
+    FrameRobot,
+    PoseField,
+    QueryIntrinsics,
     RobotId,
     Robots,
     Since,
     SubmapFilter,
+    SubmapName,
+    Timestamp,
     Until,
     filter_from_form,
     intrinsics_from_form,
+    pose_from_form,
 )
-from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn, QueryOut
-from service.api.uploads import parse_json_field, read_image_upload
+from service.api.routes.frames import get_frame
+from service.api.schemas import ErrorOut, FrameOut, QueryOut
+from service.api.uploads import read_image_upload
 from service.atlas_service import AtlasService
 from service.features_payload import decode_features
-from service.geometry import Intrinsics, Pose
 from service.loop_closures import record_if_inter_robot
 from service.ml.features import FrameFeatures
 from service.storage import repository as repo
@@ -70,27 +75,20 @@ def add_frame_features(
     service: ServiceDep,
     access: RobotAccess,
     features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
-    submap: Annotated[str, Form(description="Name of an existing submap.")],
-    robot_id: Annotated[str, Form(description="The robot that took the frame.")],
-    timestamp: Annotated[float | None, Form(description="Capture time, seconds.")] = None,
-    pose: Annotated[
-        str | None,
-        Form(description='JSON: {"rotation": [w, x, y, z], "translation": [x, y, z]}'),
-    ] = None,
-    intrinsics: Annotated[
-        str | None, Form(description='JSON: {"fx": .., "fy": .., "cx": .., "cy": ..}')
-    ] = None,
+    submap: SubmapName,
+    robot_id: FrameRobot,
+    timestamp: Timestamp = None,
+    pose: PoseField = None,
+    intrinsics: FrameIntrinsics = None,
 ) -> FrameOut:
-    pose_in = parse_json_field("pose", pose, PoseIn)
-    intrinsics_in = parse_json_field("intrinsics", intrinsics, IntrinsicsIn)
     frame = service.ingest_features(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=acting_robot(access, robot_id) or robot_id,
+        robot_id=acting_robot(access, robot_id),
         features=read_features(service, atlas, features),
         timestamp=timestamp,
-        pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
-        intrinsics=Intrinsics(**intrinsics_in.model_dump()) if intrinsics_in else None,
+        pose=pose_from_form(pose),
+        intrinsics=intrinsics_from_form(intrinsics),
     )
     return get_frame(atlas, frame.id, service, access)
 
@@ -115,7 +113,7 @@ def query_features(
     timestamp: Annotated[
         float | None, Form(description="Capture time of the query frame, seconds.")
     ] = None,
-    intrinsics: IntrinsicsField = None,
+    intrinsics: QueryIntrinsics = None,
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:

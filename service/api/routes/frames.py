@@ -4,13 +4,21 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Response, UploadFile, status
+from fastapi import APIRouter, File, Response, UploadFile, status
 
 from service.api.auth import OperatorAccess, RobotAccess, acting_robot
 from service.api.deps import RowId, ServiceDep
+from service.api.forms import (
+    FrameIntrinsics,
+    FrameRobot,
+    PoseField,
+    SubmapName,
+    Timestamp,
+    intrinsics_from_form,
+    pose_from_form,
+)
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
-from service.api.uploads import parse_json_field, read_image_upload
-from service.geometry import Intrinsics, Pose
+from service.api.uploads import read_image_upload
 from service.storage import repository as repo
 from service.storage.models import Frame
 
@@ -35,27 +43,20 @@ def add_frame(
     service: ServiceDep,
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
-    submap: Annotated[str, Form(description="Name of an existing submap.")],
-    robot_id: Annotated[str, Form(description="The robot that took the frame.")],
-    timestamp: Annotated[float | None, Form(description="Capture time, seconds.")] = None,
-    pose: Annotated[
-        str | None,
-        Form(description='JSON: {"rotation": [w, x, y, z], "translation": [x, y, z]}'),
-    ] = None,
-    intrinsics: Annotated[
-        str | None, Form(description='JSON: {"fx": .., "fy": .., "cx": .., "cy": ..}')
-    ] = None,
+    submap: SubmapName,
+    robot_id: FrameRobot,
+    timestamp: Timestamp = None,
+    pose: PoseField = None,
+    intrinsics: FrameIntrinsics = None,
 ) -> FrameOut:
-    pose_in = parse_json_field("pose", pose, PoseIn)
-    intrinsics_in = parse_json_field("intrinsics", intrinsics, IntrinsicsIn)
     frame = service.ingest_frame(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=acting_robot(caller, robot_id) or robot_id,
+        robot_id=acting_robot(caller, robot_id),
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         timestamp=timestamp,
-        pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
-        intrinsics=Intrinsics(**intrinsics_in.model_dump()) if intrinsics_in else None,
+        pose=pose_from_form(pose),
+        intrinsics=intrinsics_from_form(intrinsics),
     )
     with service.sessions() as session:
         found = repo.get_atlas(session, name=atlas)

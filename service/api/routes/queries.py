@@ -9,12 +9,25 @@ from fastapi import APIRouter, File, Form, UploadFile
 
 from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
-from service.api.schemas import ErrorOut, IntrinsicsIn, ObserveOut, PoseIn, QueryOut
-from service.api.uploads import parse_json_field, read_image_upload
-from service.atlas_service import AtlasService
-from service.geometry import Intrinsics, Pose
+from service.api.forms import (
+    ExcludeFrames,
+    ExcludeSeconds,
+    FrameRobot,
+    PoseField,
+    QueryIntrinsics,
+    RobotId,
+    Robots,
+    Since,
+    SubmapFilter,
+    Timestamp,
+    Until,
+    filter_from_form,
+    intrinsics_from_form,
+    pose_from_form,
+)
+from service.api.schemas import ErrorOut, ObserveOut, QueryOut
+from service.api.uploads import read_image_upload
 from service.loop_closures import record_if_inter_robot
-from service.query_filters import QueryFilter
 
 router = APIRouter(tags=["queries"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -29,59 +42,6 @@ DECISION = (
     "inliers. `loop_closure` is true when the best similarity reaches the threshold and that "
     "candidate is verified. The asking robot's own most recent frames never match."
 )
-
-RobotId = Annotated[
-    str | None,
-    Form(
-        description="The robot asking: its recent frames are excluded; needed by robots=own|others."
-    ),
-]
-Robots = Annotated[
-    str, Form(description="Which frames may match: 'all' (default), 'own' or 'others'.")
-]
-SubmapFilter = Annotated[str | None, Form(description="Only frames of this submap.")]
-Since = Annotated[float | None, Form(description="Only frames with timestamp >= since.")]
-Until = Annotated[float | None, Form(description="Only frames with timestamp <= until.")]
-ExcludeFrames = Annotated[
-    int | None,
-    Form(description="Override: the asking robot's last N frames never match (default setting)."),
-]
-ExcludeSeconds = Annotated[
-    float | None,
-    Form(description="Override: nor its frames within T seconds of the query (default setting)."),
-]
-IntrinsicsField = Annotated[
-    str | None,
-    Form(description='JSON {"fx", "fy", "cx", "cy"} of the query image: gives relative poses.'),
-]
-
-
-def intrinsics_from_form(raw: str | None) -> Intrinsics | None:
-    parsed = parse_json_field("intrinsics", raw, IntrinsicsIn)
-    return Intrinsics(**parsed.model_dump()) if parsed else None
-
-
-def filter_from_form(
-    service: AtlasService,
-    robot_id: str | None,
-    robots: str,
-    submap: str | None,
-    since: float | None,
-    until: float | None,
-    timestamp: float | None,
-    exclude_recent_frames: int | None,
-    exclude_recent_seconds: float | None,
-) -> QueryFilter:
-    return service.query_filter(
-        robot_id=robot_id or None,
-        robots=robots,
-        submap=submap or None,
-        since=since,
-        until=until,
-        timestamp=timestamp,
-        exclude_recent_frames=exclude_recent_frames,
-        exclude_recent_seconds=exclude_recent_seconds,
-    )
 
 
 @router.post(
@@ -105,7 +65,7 @@ def query(
     timestamp: Annotated[
         float | None, Form(description="Capture time of the query image, seconds.")
     ] = None,
-    intrinsics: IntrinsicsField = None,
+    intrinsics: QueryIntrinsics = None,
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
@@ -150,13 +110,10 @@ def observe(
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
-    robot_id: Annotated[str, Form(description="The robot that took the frame.")],
-    timestamp: Annotated[float | None, Form(description="Capture time, seconds.")] = None,
-    pose: Annotated[
-        str | None,
-        Form(description='JSON: {"rotation": [w, x, y, z], "translation": [x, y, z]}'),
-    ] = None,
-    intrinsics: IntrinsicsField = None,
+    robot_id: FrameRobot,
+    timestamp: Timestamp = None,
+    pose: PoseField = None,
+    intrinsics: QueryIntrinsics = None,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robots: Robots = "all",
     submap_filter: Annotated[
@@ -167,8 +124,7 @@ def observe(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> ObserveOut:
-    robot_id = acting_robot(caller, robot_id) or robot_id
-    pose_in = parse_json_field("pose", pose, PoseIn)
+    robot_id = acting_robot(caller, robot_id)
     query_filter = filter_from_form(
         service,
         robot_id,
@@ -186,7 +142,7 @@ def observe(
         robot_id=robot_id,
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         timestamp=timestamp,
-        pose=Pose.from_lists(pose_in.rotation, pose_in.translation) if pose_in else None,
+        pose=pose_from_form(pose),
         intrinsics=intrinsics_from_form(intrinsics),
         k=k,
         query_filter=query_filter,

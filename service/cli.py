@@ -119,6 +119,12 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
     ev.add_argument("--baselines", default="bow-orb,seqslam-sad", help="comma-separated, or ''")
     ev.add_argument("--limit", type=int, help="only the first N reference frames (a quick slice)")
     ev.add_argument("--cache-dir", type=Path, help="feature cache (default OUT/cache)")
+    ev.add_argument(
+        "--precision",
+        default="fp32",
+        choices=("auto", "fp32", "bf16"),
+        help="CNN arithmetic; the cache does not record it: one --cache-dir per precision",
+    )
     ev.add_argument("--examples", type=int, default=6, help="example queries in the strip")
     ev.add_argument(
         "--retrain-shots",
@@ -167,6 +173,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         query_stride=args.query_stride,
+        precision=args.precision,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

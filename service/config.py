@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.ml.images import ImageLimits
@@ -79,8 +79,24 @@ class Settings(BaseSettings):
         60.0, gt=0, description="How often each worker looks for lost or orphaned jobs."
     )
     inference_workers: int | None = Field(
-        None, ge=1, le=256, description="Concurrent inferences; default: cores / torch threads."
+        None,
+        ge=1,
+        le=256,
+        description="Concurrent inferences; default: cores / torch threads (times max_batch "
+        "when batching is on, so that a batch can fill).",
     )
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto",
+        description="CNN arithmetic: 'auto' = bf16 where the CPU computes it natively "
+        "(AVX512-BF16 or AMX), else fp32; 'fp32' forces float32.",
+    )
+    batch_window_ms: float = Field(
+        0.0,
+        ge=0.0,
+        le=1000.0,
+        description="Concurrent frames arriving within this window share one CNN batch; 0: off.",
+    )
+    max_batch: int = Field(8, ge=1, le=256, description="Most frames in one CNN batch.")
     inference_queue: int = Field(
         16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
     )
@@ -103,6 +119,14 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 
+    @model_validator(mode="after")
+    def _workers_fill_batches(self) -> Settings:
+        if self.inference_workers is None and self.batch_window_ms > 0 and self.max_batch > 1:
+            from service.concurrency import default_workers
+
+            self.inference_workers = min(256, default_workers(self.torch_threads) * self.max_batch)
+        return self
+
     @property
     def resolved_database_url(self) -> str:
         if self.database_url:
@@ -124,6 +148,10 @@ class Settings(BaseSettings):
     @property
     def image_limits(self) -> ImageLimits:
         return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)
+
+    def pipeline_options(self) -> tuple[str, float, int]:
+        """FeaturePipeline's precision, batch_window_ms and max_batch."""
+        return self.precision, self.batch_window_ms, self.max_batch
 
     def preset(self) -> ModelPreset:
         return resolve_preset(

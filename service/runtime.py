@@ -59,7 +59,7 @@ class Runtime:
             preset = self.settings.preset()
             log.info("loading model preset %r (%s, %s)", preset.name, preset.local, preset.backbone)
             assert self.sessions is not None
-            pipeline = self._pipeline or FeaturePipeline(preset)
+            pipeline = self._pipeline or FeaturePipeline(preset, *self.settings.pipeline_options())
             service = AtlasService(self.settings, self.sessions, pipeline)
             service.load_all()
             self._follower = ChangeFollower(

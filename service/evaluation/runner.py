@@ -78,6 +78,8 @@ class EvalConfig:
             extractor's ranking adds a row each (issue 5); empty: none.
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
+        precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
+            precision are reused in another, so give each its own ``cache_dir``.
     """
 
     dataset: Path
@@ -105,6 +107,7 @@ class EvalConfig:
     verify: tuple[str, ...] = ()
     verify_top: int = 5
     query_stride: int = 1
+    precision: str = "fp32"
 
 
 @dataclass
@@ -337,7 +340,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             max_keypoints=config.max_keypoints,
         )
         try:
-            pipeline = FeaturePipeline(preset)
+            pipeline = FeaturePipeline(preset, config.precision)
         except WeightsUnavailable as exc:
             skipped[extractor] = str(exc)
             log.warning("skipping %s: %s", extractor, exc)

@@ -140,7 +140,14 @@ class JobRunner:
                 )
 
         with self.sessions() as session:
-            add_stored_frames(session, atlas_id, result.heads, index, progress=on_chunk)
+            add_stored_frames(
+                session,
+                atlas_id,
+                result.heads,
+                index,
+                progress=on_chunk,
+                precision=self.settings.precision,
+            )
         reembed_seconds = time.perf_counter() - started
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)
         files.append(index_path)

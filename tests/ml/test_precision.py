@@ -134,3 +134,33 @@ def test_batched_extraction_equals_one_by_one() -> None:
         assert np.allclose(features.global_vector, alone.global_vector, atol=1e-4)
         assert float(features.local_vector @ alone.local_vector) >= 0.999
         assert abs(features.local.count - alone.local.count) <= 2
+
+
+def test_bf16_re_embedding_keeps_embeddings_and_rankings() -> None:
+    """Stored vectors re-embedded with bf16 matrix products: cosine >= 0.999 to fp32, and an
+    exact search ranks the same nearest neighbours."""
+    from service.ml.heads import HeadsConfig, LoopNetHeads
+    from service.ml.pipeline import embed_vectors
+
+    heads = LoopNetHeads(HeadsConfig(128, 1280, alpha=0.7)).eval()
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # away from the identity initialisation, like trained heads
+        for parameter in heads.parameters():
+            parameter.add_(0.05 * torch.randn(parameter.shape, generator=generator))
+    rng = np.random.default_rng(0)
+    places = rng.standard_normal((200, 128 + 1280)).astype(np.float32)
+    stored = np.repeat(places, 5, axis=0) + 0.3 * rng.standard_normal((1000, 1408)).astype(
+        np.float32
+    )
+    local, global_ = stored[:, :128].copy(), np.abs(stored[:, 128:])
+    local /= np.linalg.norm(local, axis=1, keepdims=True)
+    global_ /= np.linalg.norm(global_, axis=1, keepdims=True)
+    fp32 = embed_vectors(heads, local, global_, "fp32")
+    bf16 = embed_vectors(heads, local, global_, "bf16")
+    assert bf16.dtype == np.float32
+    assert np.allclose(np.linalg.norm(bf16, axis=1), 1.0, atol=1e-5)
+    assert (fp32 * bf16).sum(1).min() >= 0.999
+    queries = fp32[::5] + 0.01 * rng.standard_normal((200, fp32.shape[1])).astype(np.float32)
+    top_fp32 = np.argsort(-(queries @ fp32.T), axis=1)[:, :5]
+    top_bf16 = np.argsort(-(queries @ bf16.T), axis=1)[:, :5]
+    assert (top_fp32[:, 0] == top_bf16[:, 0]).mean() >= 0.99

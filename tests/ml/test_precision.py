@@ -112,7 +112,8 @@ def test_bf16_local_features_match_fp32(name: str, long_side: int) -> None:
 
 @needs_bf16
 @pytest.mark.parametrize("name, size", [("mobilenetv2", 160), ("mobilenetv2", 224)])
-def test_bf16_global_vectors_match_fp32(name: str, size: int) -> None:
+def test_global_vectors_in_the_bf16_policy_match_fp32(name: str, size: int) -> None:
+    """Whatever MODEL_POLICIES runs the backbone in when bf16 is asked for."""
     fast = build_backbone(BackboneConfig(name, size), precision="bf16")
     reference = build_backbone(BackboneConfig(name, size), precision="fp32")
     frames = _frames()

@@ -156,14 +156,14 @@ def preset_section(frames: list[np.ndarray], precision: Precision, repeats: int)
     return rows
 
 
-def reembedding(frames: int, with_index: bool) -> dict[str, Any]:
+def reembedding(frames: int, with_index: bool, embed_dim: int) -> dict[str, Any]:
     """Re-embedding ``frames`` stored frames in 100k chunks, fp32 against bf16 matrix work;
     then, optionally, the size-chosen index built from the bf16 embeddings."""
     from service.index import AtlasIndex, IndexPolicy
     from service.ml.heads import HeadsConfig, LoopNetHeads
     from service.ml.pipeline import embed_vectors
 
-    heads = LoopNetHeads(HeadsConfig(128, 1280, alpha=0.7)).eval()
+    heads = LoopNetHeads(HeadsConfig(128, 1280, alpha=0.7, embed_dim=embed_dim)).eval()
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():  # trained-like heads: weights away from their identity initialisation
         for parameter in heads.parameters():
@@ -174,7 +174,7 @@ def reembedding(frames: int, with_index: bool) -> dict[str, Any]:
     global_ = np.abs(rng.standard_normal((chunk, 1280), dtype=np.float32))
     local /= np.linalg.norm(local, axis=1, keepdims=True)
     global_ /= np.linalg.norm(global_, axis=1, keepdims=True)
-    out: dict[str, Any] = {"frames": frames}
+    out: dict[str, Any] = {"frames": frames, "embed_dim": embed_dim}
     embedded: dict[str, np.ndarray] = {}
     for precision in ("fp32", "bf16"):
         wall = cpu = 0.0
@@ -242,7 +242,7 @@ def markdown(report: dict[str, Any]) -> str:
     if "reembedding" in report:
         r = report["reembedding"]
         lines.append(
-            f"\nRe-embedding {r['frames']} frames: fp32 {r['embed_fp32']['wall_s']:.1f} s wall / "
+            f"\nRe-embedding {r['frames']} frames (embed_dim {r['embed_dim']}): fp32 {r['embed_fp32']['wall_s']:.1f} s wall / "
             f"{r['embed_fp32']['cpu_s']:.1f} s CPU; bf16 {r['embed_bf16']['wall_s']:.1f} / "
             f"{r['embed_bf16']['cpu_s']:.1f} s (cosine to fp32: min {r['bf16_cosine_min']:.5f})."
         )
@@ -262,6 +262,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--precision", default="bf16", choices=("fp32", "bf16"))
     parser.add_argument("--reembed-frames", type=int, default=1_000_000)
+    parser.add_argument("--embed-dim", type=int, default=256, help="a retrained model's")
     parser.add_argument("--no-index", action="store_true", help="skip the index build")
     parser.add_argument("--only", default="local,floor,backbones,presets,reembedding")
     args = parser.parse_args()
@@ -289,7 +290,7 @@ def main() -> None:
         "floor": lambda: disk_floor(rgb, precision, max(1, args.repeats // 2)),
         "backbones": lambda: backbone_section(rgb, precision, args.repeats * 4),
         "presets": lambda: preset_section(frames, precision, args.repeats),
-        "reembedding": lambda: reembedding(args.reembed_frames, not args.no_index),
+        "reembedding": lambda: reembedding(args.reembed_frames, not args.no_index, args.embed_dim),
     }
     keys = {"floor": "disk1024_floor"}
     for name, run in sections.items():

@@ -121,3 +121,15 @@ def test_batched_pipeline_gives_each_concurrent_frame_its_own_features() -> None
         assert np.allclose(features.global_vector, reference.global_vector, atol=1e-4)
         assert float(features.local_vector @ reference.local_vector) >= 0.999
         assert features.local.count == pytest.approx(reference.local.count, abs=2)
+
+
+def test_batching_settings_let_a_batch_fill(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from service.concurrency import default_workers
+    from service.config import Settings
+
+    on = Settings(data_dir=tmp_path, batch_window_ms=5, max_batch=8, torch_threads=1)
+    assert on.inference_workers == 8 * default_workers(1)
+    assert on.pipeline_options() == ("auto", 5.0, 8)
+    assert Settings(data_dir=tmp_path).inference_workers is None  # off: unchanged default
+    chosen = Settings(data_dir=tmp_path, batch_window_ms=5, inference_workers=3)
+    assert chosen.inference_workers == 3

@@ -10,10 +10,12 @@ The archive is a tar file:
 - ``features.npz``: every frame's stored features as arrays (ragged keypoints by offsets);
 - ``models/v<N>.pt``: trained heads; ``index.faiss``: the active version's FAISS index.
 
-A restore checks the manifest and checksums and refuses an unknown format version, an unknown
-schema revision or features of another signature than the restoring service extracts, then
-writes every row in one transaction under the same or a new atlas name (a failure leaves
-nothing). Frames get new ids; the index is re-keyed to them, so no embedding is recomputed.
+A restore reads the archive within size limits (:mod:`service.snapshot_archive`), refuses an
+unknown format version, an unknown schema revision or features of another signature than the
+restoring service extracts, and validates every row, array and weights file
+(:mod:`service.snapshot_rows`) before it writes anything. It then writes in short transactions
+under a hidden name, renamed in the last one; a failure deletes what was written. Frames get
+new ids; the index is rebuilt from the archived features with the active heads (cheap: no CNN).
 """
 
 from __future__ import annotations
@@ -22,16 +24,18 @@ import hashlib
 import io
 import json
 import logging
+import shutil
 import tarfile
 import tempfile
+import uuid
 from collections.abc import Iterable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import faiss
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import delete, insert, select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__, models_store
@@ -40,24 +44,25 @@ from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex
 from service.index_builder import add_stored_frames
+from service.ml.backbones.registry import backbone_spec
+from service.ml.local_extractors import LOCAL_EXTRACTORS
+from service.ml.pipeline import embed_vectors
 from service.ml.presets import preset_signature
+from service.snapshot_archive import FORMAT, FORMAT_VERSION, read_archive
+from service.snapshot_rows import DecodedSnapshot, FrameRow, decode_snapshot
 from service.storage import repository as repo
 from service.storage.db import MIGRATIONS_DIR, transaction
 from service.storage.models import (
+    Atlas,
     Base,
     Frame,
     FrameFeatureRow,
     LoopClosure,
     ModelVersion,
     Submap,
-    UTCDateTime,
 )
 
 log = logging.getLogger(__name__)
-
-FORMAT = "loopnet-atlas-snapshot"
-FORMAT_VERSION = 1
-
 
 # ----- rows <-> JSON -------------------------------------------------------------------------
 
@@ -73,25 +78,8 @@ def _row(obj: Base, skip: Iterable[str] = ()) -> dict[str, Any]:
     return out
 
 
-def _values(model: type[Base], row: dict[str, Any], drop: Iterable[str]) -> dict[str, Any]:
-    """Keyword arguments for ``model`` from an archived row: known columns only, minus ``drop``."""
-    out: dict[str, Any] = {}
-    for column in model.__table__.columns:
-        if column.key in drop or column.key not in row:
-            continue
-        value = row[column.key]
-        if value is not None and isinstance(column.type, UTCDateTime):
-            value = datetime.fromisoformat(value)
-        out[column.key] = value
-    return out
-
-
 def _jsonl(rows: Iterable[dict[str, Any]]) -> bytes:
     return "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows).encode()
-
-
-def _read_jsonl(data: bytes) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in data.decode().splitlines() if line.strip()]
 
 
 def head_revision() -> str:
@@ -227,163 +215,251 @@ def export_atlas(
 
 # ----- restore -------------------------------------------------------------------------------
 
-
-def read_archive(path: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
-    """The manifest and the members of an archive, checked against the manifest."""
-    try:
-        with tarfile.open(path, "r") as archive:
-            members = {
-                m.name: archive.extractfile(m).read()  # type: ignore[union-attr]
-                for m in archive.getmembers()
-                if m.isfile()
-            }
-    except (tarfile.TarError, OSError) as exc:
-        raise InvalidInput(f"{path} is not a readable snapshot archive: {exc}") from exc
-    try:
-        manifest = json.loads(members.pop("manifest.json"))
-    except (KeyError, ValueError) as exc:
-        raise InvalidInput(f"{path} has no valid manifest.json") from exc
-    if manifest.get("format") != FORMAT:
-        raise InvalidInput(f"{path} is not a LoopNet atlas snapshot")
-    if manifest.get("format_version") != FORMAT_VERSION:
-        raise InvalidInput(
-            f"snapshot format version {manifest.get('format_version')} is not supported "
-            f"(this LoopNet reads version {FORMAT_VERSION})"
-        )
-    if manifest.get("schema_revision") not in known_revisions():
-        raise InvalidInput(
-            f"the snapshot was written at schema revision {manifest.get('schema_revision')!r}, "
-            "which this LoopNet does not know: restore it with a newer LoopNet"
-        )
-    checksums: dict[str, str] = manifest.get("checksums", {})
-    if set(checksums) != set(members):
-        raise InvalidInput("the snapshot's members do not match its manifest")
-    for name, digest in checksums.items():
-        if hashlib.sha256(members[name]).hexdigest() != digest:
-            raise InvalidInput(f"the snapshot's {name} is corrupt (checksum mismatch)")
-    return manifest, members
-
-
-def _feature_rows(data: bytes, frame_id_map: dict[int, int]) -> list[FrameFeatureRow]:
-    arrays = np.load(io.BytesIO(data))
-    descriptor_dim, global_dim = int(arrays["descriptor_dim"]), int(arrays["global_dim"])
-    offsets = np.concatenate([[0], np.cumsum(arrays["keypoint_counts"])])
-    rows = []
-    for i, old_id in enumerate(arrays["frame_ids"].tolist()):
-        a, b = int(offsets[i]), int(offsets[i + 1])
-        rows.append(
-            FrameFeatureRow(
-                frame_id=frame_id_map[old_id],
-                descriptor_dim=descriptor_dim,
-                global_dim=global_dim,
-                keypoints=np.ascontiguousarray(arrays["keypoints"][a:b], "<f4").tobytes(),
-                descriptors=np.ascontiguousarray(arrays["descriptors"][a:b], "<f2").tobytes(),
-                scores=np.ascontiguousarray(arrays["scores"][a:b], "<f4").tobytes(),
-                local_vector=np.ascontiguousarray(arrays["local_vectors"][i], "<f4").tobytes(),
-                global_vector=np.ascontiguousarray(arrays["global_vectors"][i], "<f4").tobytes(),
-            )
-        )
-    return rows
-
-
-def _rekeyed_index(
-    data: bytes, frame_id_map: dict[int, int], robot_of: dict[int, str]
-) -> AtlasIndex | None:
-    """The archived index under the new frame ids (None if its type cannot give vectors back:
-    the service then rebuilds it from the stored features at load)."""
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            (Path(tmp) / "index.faiss").write_bytes(data)
-            source: Any = faiss.read_index(str(Path(tmp) / "index.faiss"))
-        old_ids = faiss.vector_to_array(source.id_map).astype(np.int64)
-        vectors = source.index.reconstruct_n(0, source.ntotal)
-    except Exception as exc:
-        log.warning("snapshot index not re-keyed (%s); it is rebuilt from features", exc)
-        return None
-    new_ids = np.array([frame_id_map[int(i)] for i in old_ids], np.int64)
-    index = AtlasIndex(int(source.d))
-    index.add(new_ids, vectors, [robot_of[int(i)] for i in new_ids])
-    return index
+# Frames written per transaction: bounded in bytes so that a concurrent writer never waits
+# long for SQLite's write lock.
+BATCH_BYTES = 4 * 1024 * 1024
+EMBED_CHUNK = 4096  # frames embedded at once
+# Restores in progress are atlases under a name the API refuses, so no request can address
+# them and listings skip them; the last transaction gives them their real name.
+RESTORING_PREFIX = ".restoring-"
 
 
 def restore_atlas(
     settings: Settings, sessions: sessionmaker[Session], path: Path, *, name: str | None = None
 ) -> str:
-    """Restore the archive ``path`` as a new atlas (``name`` or the archived one's)."""
-    manifest, members = read_archive(path)
-    expected = preset_signature(settings.preset())
-    if manifest["feature_signature"] != expected:
-        raise Conflict(
-            f"the snapshot holds features {manifest['feature_signature']}, but this deployment "
-            f"extracts {expected}; restore it on a service running the snapshot's settings"
+    """Restore the archive ``path`` as a new atlas (``name`` or the archived one's).
+
+    Everything is read, decoded and validated first, with no database lock held; the rows are
+    then written in short batches under a hidden name, and a failure deletes what was written.
+    """
+    limits = settings.snapshot_limits
+    archive = read_archive(path, limits)
+    if archive.manifest.schema_revision not in known_revisions():
+        raise InvalidInput(
+            f"the snapshot was written at schema revision {archive.manifest.schema_revision!r}, "
+            "which this LoopNet does not know: restore it with a newer LoopNet"
         )
-    name = validate_name("atlas", name or manifest["atlas"])
+    preset = settings.preset()
+    expected = preset_signature(preset)
+    if archive.manifest.feature_signature != expected:
+        raise Conflict(
+            f"the snapshot holds features {archive.manifest.feature_signature}, but this "
+            f"deployment extracts {expected}; restore it on a service running the snapshot's "
+            "settings"
+        )
+    name = validate_name("atlas", name or archive.manifest.atlas)
+    with sessions() as session:
+        if session.scalar(select(Atlas.id).where(Atlas.name == name)) is not None:
+            raise Conflict(f"atlas '{name}' already exists")
+    feature_dims = (
+        LOCAL_EXTRACTORS[preset.local.name].descriptor_dim,
+        backbone_spec(preset.backbone.name).dim,
+    )
+    snapshot = decode_snapshot(archive, limits, feature_dims)
+    if snapshot.atlas.feature_signature != expected:
+        raise InvalidInput("the snapshot's atlas.json disagrees with its manifest's features")
+    vectors = _embeddings(snapshot)
     written: list[Path] = []
+    atlas_id: int | None = None
     try:
+        atlas_id, submap_map = _write_atlas(settings, sessions, snapshot)
+        frame_map = _write_frames(sessions, atlas_id, snapshot, submap_map)
+        _write_files(settings, atlas_id, snapshot, vectors, submap_map, frame_map, written)
         with transaction(sessions) as session:
-            atlas_row = json.loads(members["atlas.json"])
-            atlas = repo.create_atlas(
-                session,
-                name=name,
-                description=atlas_row.get("description", ""),
-                feature_signature=manifest["feature_signature"],
-            )
-            submap_map: dict[int, int] = {}
-            for row in _read_jsonl(members["submaps.jsonl"]):
-                submap = Submap(atlas_id=atlas.id, **_values(Submap, row, ("id", "atlas_id")))
-                session.add(submap)
-                session.flush()
-                submap_map[int(row["id"])] = submap.id
-            frame_map: dict[int, int] = {}
-            robot_of: dict[int, str] = {}
-            for row in _read_jsonl(members["frames.jsonl"]):
-                values = _values(Frame, row, ("id", "atlas_id", "submap_id"))
-                frame = Frame(atlas_id=atlas.id, submap_id=submap_map[row["submap_id"]], **values)
-                session.add(frame)
-                session.flush()
-                frame_map[int(row["id"])] = frame.id
-                robot_of[frame.id] = frame.robot_id
-            session.add_all(_feature_rows(members["features.npz"], frame_map))
-            for row in _read_jsonl(members["model_versions.jsonl"]):
-                weights_path = None
-                if row["weights"] is not None:
-                    target = models_store.weights_file(
-                        settings.models_dir, atlas.id, int(row["version"])
-                    )
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    target.write_bytes(members[row["weights"]])
-                    written.append(target)
-                    weights_path = str(target.relative_to(settings.models_dir))
-                session.add(
-                    ModelVersion(
-                        atlas_id=atlas.id,
-                        weights_path=weights_path,
-                        **_values(ModelVersion, row, ("id", "atlas_id", "weights_path")),
-                    )
-                )
-            for row in _read_jsonl(members["loop_closures.jsonl"]):
-                if row["frame_id"] not in frame_map:
-                    continue
-                session.add(
-                    LoopClosure(
-                        atlas_id=atlas.id,
-                        **{
-                            **_values(LoopClosure, row, ("id", "atlas_id")),
-                            "frame_id": frame_map[row["frame_id"]],
-                            "submap_id": submap_map[row["submap_id"]],
-                        },
-                    )
-                )
-            index = _rekeyed_index(members["index.faiss"], frame_map, robot_of)
-            if index is not None:
-                target = models_store.index_file(
-                    settings.index_dir, atlas.id, int(manifest["active_model_version"])
-                )
-                index.save(target)
-                written.append(target)
-            session.flush()
-    except Exception:
-        for file in written:
-            file.unlink(missing_ok=True)
+            _write_loop_closures(session, atlas_id, snapshot, submap_map, frame_map)
+            session.execute(update(Atlas).where(Atlas.id == atlas_id).values(name=name))
+    except BaseException as exc:
+        _undo(settings, sessions, atlas_id, written)
+        if isinstance(exc, IntegrityError):  # a concurrent create took the name meanwhile
+            raise Conflict(f"atlas '{name}' already exists") from exc
         raise
     return name
+
+
+def _embeddings(snapshot: DecodedSnapshot) -> np.ndarray:
+    """Every frame's embedding under the active version (the index is rebuilt, never read:
+    a FAISS file from elsewhere is not parsed)."""
+    heads, features = snapshot.active.heads, snapshot.features
+    chunks = [
+        embed_vectors(
+            heads,
+            features.local_vectors[start : start + EMBED_CHUNK],
+            features.global_vectors[start : start + EMBED_CHUNK],
+        )
+        for start in range(0, len(features.frame_ids), EMBED_CHUNK)
+    ]
+    if not chunks:
+        return np.zeros((0, heads.config.fused_dim), np.float32)
+    return np.concatenate(chunks)
+
+
+def _write_atlas(
+    settings: Settings, sessions: sessionmaker[Session], snapshot: DecodedSnapshot
+) -> tuple[int, dict[int, int]]:
+    """The atlas under its hidden name, its submaps and its model versions; returns the atlas
+    id and the submap ids by archived id."""
+    with transaction(sessions) as session:
+        atlas = repo.create_atlas(
+            session,
+            name=RESTORING_PREFIX + uuid.uuid4().hex,
+            description=snapshot.atlas.description,
+            feature_signature=snapshot.atlas.feature_signature,
+        )
+        new_ids = (
+            session.scalars(
+                insert(Submap).returning(Submap.id, sort_by_parameter_order=True),
+                [
+                    {"atlas_id": atlas.id, "name": s.name, "created_at": s.created_at}
+                    for s in snapshot.submaps
+                ],
+            ).all()
+            if snapshot.submaps
+            else []
+        )
+        submap_map = {s.id: new for s, new in zip(snapshot.submaps, new_ids, strict=True)}
+        for version in snapshot.versions:
+            row = version.row
+            weights_path = None
+            if row.weights is not None:
+                target = models_store.weights_file(settings.models_dir, atlas.id, row.version)
+                weights_path = str(target.relative_to(settings.models_dir))
+            session.add(
+                ModelVersion(
+                    atlas_id=atlas.id,
+                    version=row.version,
+                    config=row.config.model_dump(),
+                    metrics=row.metrics,
+                    weights_path=weights_path,
+                    is_active=row.is_active,
+                    created_at=row.created_at,
+                )
+            )
+        return atlas.id, submap_map
+
+
+def _batches(snapshot: DecodedSnapshot) -> Iterable[range]:
+    """Ranges of frames of about ``BATCH_BYTES`` stored features each."""
+    features = snapshot.features
+    per_keypoint = 2 * 4 + features.descriptor_dim * 2 + 4
+    per_frame = 4 * (features.descriptor_dim + features.global_dim)
+    start, size = 0, 0
+    for i in range(len(snapshot.frames)):
+        size += per_frame + per_keypoint * int(features.offsets[i + 1] - features.offsets[i])
+        if size >= BATCH_BYTES:
+            yield range(start, i + 1)
+            start, size = i + 1, 0
+    if start < len(snapshot.frames):
+        yield range(start, len(snapshot.frames))
+
+
+def _write_frames(
+    sessions: sessionmaker[Session],
+    atlas_id: int,
+    snapshot: DecodedSnapshot,
+    submap_map: dict[int, int],
+) -> dict[int, int]:
+    """Frames and their features in short transactions; returns new frame ids by archived id."""
+    features = snapshot.features
+    frame_map: dict[int, int] = {}
+    columns = [c for c in FrameRow.model_fields if c not in ("id", "submap_id")]
+    for batch in _batches(snapshot):
+        frames = [snapshot.frames[i] for i in batch]
+        with transaction(sessions) as session:
+            new_ids = session.scalars(
+                insert(Frame).returning(Frame.id, sort_by_parameter_order=True),
+                [
+                    {
+                        "atlas_id": atlas_id,
+                        "submap_id": submap_map[f.submap_id],
+                        **{c: getattr(f, c) for c in columns},
+                    }
+                    for f in frames
+                ],
+            ).all()
+            rows = []
+            for i, frame, new_id in zip(batch, frames, new_ids, strict=True):
+                a, b = int(features.offsets[i]), int(features.offsets[i + 1])
+                frame_map[frame.id] = new_id
+                rows.append(
+                    {
+                        "frame_id": new_id,
+                        "descriptor_dim": features.descriptor_dim,
+                        "global_dim": features.global_dim,
+                        "keypoints": features.keypoints[a:b].tobytes(),
+                        "descriptors": features.descriptors[a:b].tobytes(),
+                        "scores": features.scores[a:b].tobytes(),
+                        "local_vector": features.local_vectors[i].tobytes(),
+                        "global_vector": features.global_vectors[i].tobytes(),
+                    }
+                )
+            session.execute(insert(FrameFeatureRow), rows)
+    return frame_map
+
+
+def _write_files(
+    settings: Settings,
+    atlas_id: int,
+    snapshot: DecodedSnapshot,
+    vectors: np.ndarray,
+    submap_map: dict[int, int],
+    frame_map: dict[int, int],
+    written: list[Path],
+) -> None:
+    """Weights (their classifier relabelled with the new submap ids) and the active version's
+    index under the new frame ids; each file is listed in ``written`` before it is written."""
+    for version in snapshot.versions:
+        if version.row.weights is None:
+            continue
+        heads = version.heads
+        heads.class_labels = [submap_map[label] for label in heads.class_labels]
+        target = models_store.weights_file(settings.models_dir, atlas_id, version.row.version)
+        written.append(target)
+        heads.save(target)
+    index = AtlasIndex(snapshot.active.heads.config.fused_dim)
+    ids = np.array([frame_map[f.id] for f in snapshot.frames], np.int64)
+    index.add(ids, vectors, [f.robot_id for f in snapshot.frames])
+    index.wait_rebuilt()
+    target = models_store.index_file(settings.index_dir, atlas_id, snapshot.active.row.version)
+    written.append(target)
+    index.save(target)
+
+
+def _write_loop_closures(
+    session: Session,
+    atlas_id: int,
+    snapshot: DecodedSnapshot,
+    submap_map: dict[int, int],
+    frame_map: dict[int, int],
+) -> None:
+    if not snapshot.loop_closures:
+        return
+    session.execute(
+        insert(LoopClosure),
+        [
+            {
+                **c.model_dump(),
+                "atlas_id": atlas_id,
+                "frame_id": frame_map[c.frame_id],
+                "submap_id": submap_map[c.submap_id],
+            }
+            for c in snapshot.loop_closures
+        ],
+    )
+
+
+def _undo(
+    settings: Settings, sessions: sessionmaker[Session], atlas_id: int | None, written: list[Path]
+) -> None:
+    """Delete a failed restore's atlas (its rows cascade) and its files."""
+    for file in written:
+        file.unlink(missing_ok=True)
+    if atlas_id is None:
+        return
+    shutil.rmtree(
+        models_store.weights_file(settings.models_dir, atlas_id, 1).parent, ignore_errors=True
+    )
+    try:
+        with transaction(sessions) as session:
+            session.execute(delete(Atlas).where(Atlas.id == atlas_id))
+    except Exception:
+        log.exception("a failed restore's atlas %d could not be deleted", atlas_id)

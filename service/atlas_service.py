@@ -8,9 +8,9 @@ transaction, and only then add the vector to the in-memory index.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
-import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -22,9 +22,10 @@ import torch
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import change_feed, models_store
+from service.broken_atlases import BrokenAtlases
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
-from service.errors import Conflict, InvalidInput, NotFound
+from service.errors import AtlasUnavailable, Conflict, InvalidInput, NotFound
 from service.geometry import Intrinsics, Pose
 from service.index import AtlasIndex
 from service.index_builder import add_stored_frames
@@ -156,6 +157,7 @@ class AtlasService:
             ransac=RansacConfig(threshold_px=settings.ransac_threshold_px),
         )
         self._verifier: Verifier | None = None  # built on first use (LightGlue loads weights)
+        self.broken = BrokenAtlases(max(settings.model_poll_seconds, 1.0), settings.data_dir)
 
     # ----- atlases -----------------------------------------------------------------------
 
@@ -193,9 +195,7 @@ class AtlasService:
             session.delete(atlas)
         with self._loaded_lock:
             self._loaded.pop(atlas_id, None)
-        for path in self.settings.index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
-            path.unlink(missing_ok=True)
-        shutil.rmtree(self.settings.models_dir / f"atlas-{atlas_id}", ignore_errors=True)
+        models_store.remove_atlas_files(self.settings.index_dir, self.settings.models_dir, atlas_id)
 
     def atlas_summary(self, session: Session, atlas: Atlas) -> dict[str, Any]:
         version = repo.active_model_version(session, atlas_id=atlas.id)
@@ -213,11 +213,13 @@ class AtlasService:
     # ----- loaded state ------------------------------------------------------------------
 
     def load_all(self) -> None:
-        """Load heads and reconcile the index of every atlas (at start-up)."""
+        """Load heads and reconcile the index of every atlas (at start-up); an atlas that
+        cannot be loaded is left out and reported (see :class:`BrokenAtlases`)."""
         with self.sessions() as session:
             atlas_ids = [a.id for a in repo.list_atlases(session)]
         for atlas_id in atlas_ids:
-            self.loaded(atlas_id)
+            with contextlib.suppress(AtlasUnavailable):  # reported by self.broken
+                self.loaded(atlas_id)
 
     def _atlas_lock(self, atlas_id: int) -> threading.RLock:
         with self._loaded_lock:
@@ -236,7 +238,7 @@ class AtlasService:
                 current = self._loaded.get(atlas_id)
             if current is not None and current is not state:
                 return current  # another thread swapped meanwhile
-            new = self._load(atlas_id)
+            new = self.broken.load(atlas_id, lambda: self._load(atlas_id))
             if state is not None:
                 log.info(
                     "atlas %d: now serving model version %d (was %d)",

@@ -7,14 +7,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import models_store
 from service.config import Settings
 from service.errors import InvalidInput
 from service.index import AtlasIndex
+from service.snapshots import RESTORING_PREFIX
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.models import Atlas
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,14 @@ def check_atlases(
                 problem = f"{type(exc).__name__}: {exc}"
             out.append(AtlasCheck(atlas.name, version, problem))
     return out
+
+
+def unfinished_restores(sessions: sessionmaker[Session]) -> list[str]:
+    """Hidden atlases of snapshot restores that never finished (a process killed midway);
+    ``delete_atlas`` removes them by the name listed."""
+    with sessions() as session:
+        query = select(Atlas.name).where(Atlas.name.startswith(RESTORING_PREFIX))
+        return list(session.scalars(query))
 
 
 def delete_atlas(settings: Settings, sessions: sessionmaker[Session], name: str) -> None:

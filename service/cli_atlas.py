@@ -28,7 +28,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
 
 
 def cmd_atlas_check(args: argparse.Namespace) -> int:
-    from service.atlas_repair import check_atlases
+    from service.atlas_repair import check_atlases, unfinished_restores
 
     broken = 0
 
@@ -43,6 +43,9 @@ def cmd_atlas_check(args: argparse.Namespace) -> int:
                 print(
                     f"{check.name}: BROKEN (model version {check.model_version}): {check.problem}"
                 )
+        for name in unfinished_restores(sessions):
+            broken += 1
+            print(f"{name}: UNFINISHED snapshot restore (remove it with `loopnet atlas delete`)")
         if broken:
             print(
                 f"{broken} atlas(es) cannot be loaded: `loopnet atlas activate ATLAS VERSION` "

@@ -9,6 +9,9 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.snapshots import RESTORING_PREFIX
+from service.storage import repository as repo
+from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from tests.api.helpers import add_frame, create_atlas
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 from tests.fleet.snapshot_helpers import deployment_env, loopnet
@@ -77,3 +80,19 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
     assert not any(p.exists() for p in atlas_files)
     check = loopnet(env, "atlas", "check")
     assert check.returncode == 0 and "restored" not in check.stdout
+
+
+def test_an_unfinished_restore_is_reported_and_deleted(tmp_path: Path) -> None:
+    """A restore killed midway leaves a hidden atlas: listed by check, removed by delete."""
+    env = deployment_env(tmp_path / "deployment")
+    settings = make_settings(tmp_path / "deployment")
+    upgrade_database(settings.resolved_database_url)
+    sessions = make_session_factory(make_engine(settings.resolved_database_url))
+    with transaction(sessions) as session:
+        repo.create_atlas(
+            session, name=RESTORING_PREFIX + "abc", description="", feature_signature={}
+        )
+    check = loopnet(env, "atlas", "check")
+    assert check.returncode == 1 and ".restoring-abc: UNFINISHED" in check.stdout
+    assert loopnet(env, "atlas", "delete", ".restoring-abc").returncode == 0
+    assert loopnet(env, "atlas", "check").returncode == 0

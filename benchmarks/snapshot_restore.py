@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 from sqlalchemy import insert
+from synthetic_embeddings import ClusteredEmbeddings
 
-from benchmarks.synthetic_embeddings import ClusteredEmbeddings
 from service import models_store
 from service.config import Settings
 from service.ml.backbones.registry import backbone_spec

@@ -76,7 +76,7 @@ def _run(action: Any) -> int:
 
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
-    from service.auth import create_key, parse_role
+    from service.fleet.keys import create_key, parse_role
     from service.storage.db import transaction
 
     def action() -> None:
@@ -93,7 +93,7 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_list(_args: argparse.Namespace) -> int:
-    from service.auth import list_keys
+    from service.fleet.keys import list_keys
 
     def action() -> None:
         _, sessions = _sessions()
@@ -105,7 +105,7 @@ def cmd_keys_list(_args: argparse.Namespace) -> int:
 
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
-    from service.auth import revoke_key
+    from service.fleet.keys import revoke_key
     from service.storage.db import transaction
 
     def action() -> None:
@@ -118,7 +118,7 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_export(args: argparse.Namespace) -> int:
-    from service.snapshots import export_atlas
+    from service.fleet.snapshots import export_atlas
 
     def action() -> None:
         settings, sessions = _sessions()
@@ -129,7 +129,7 @@ def cmd_snapshot_export(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_restore(args: argparse.Namespace) -> int:
-    from service.snapshots import restore_atlas
+    from service.fleet.snapshots import restore_atlas
 
     def action() -> None:
         settings, sessions = _sessions()

@@ -9,9 +9,9 @@ from fastapi import Form
 
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
-from service.atlas_service import AtlasService
-from service.geometry import Intrinsics, Pose
-from service.query_filters import QueryFilter
+from service.atlas.catalog import AtlasService
+from service.atlas.filters import QueryFilter
+from service.ml.geometry import Intrinsics, Pose
 
 # ----- a new frame ---------------------------------------------------------------------------
 

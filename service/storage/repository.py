@@ -9,8 +9,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.errors import Conflict, NotFound
-from service.geometry import Intrinsics, Pose
 from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
 from service.storage.feature_store import to_row
 from service.storage.models import Atlas, Frame, FrameFeatureRow, ModelVersion, Submap
 

@@ -36,9 +36,9 @@ from service.api.forms import (
 from service.api.routes.frames import get_frame
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.atlas_service import AtlasService
+from service.atlas.catalog import AtlasService
+from service.atlas.loop_closures import record_if_inter_robot
 from service.features_payload import decode_features
-from service.loop_closures import record_if_inter_robot
 from service.ml.features import FrameFeatures
 from service.storage import repository as repo
 

@@ -9,8 +9,8 @@ from fastapi import APIRouter, status
 from service.api.auth import AdminAccess
 from service.api.deps import RowId, RuntimeDep
 from service.api.schemas import ApiKeyIn, ApiKeyOut, ErrorOut, NewApiKeyOut
-from service.auth import Role, create_key, list_keys, revoke_key
 from service.errors import NotReady
+from service.fleet.keys import Role, create_key, list_keys, revoke_key
 from service.storage.db import transaction
 from service.storage.models import ApiKey
 

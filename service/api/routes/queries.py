@@ -27,7 +27,7 @@ from service.api.forms import (
 )
 from service.api.schemas import ErrorOut, ObserveOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.loop_closures import record_if_inter_robot
+from service.atlas.loop_closures import record_if_inter_robot
 
 router = APIRouter(tags=["queries"])
 ERRORS: dict[int | str, dict[str, Any]] = {

@@ -14,7 +14,7 @@ from starlette.background import BackgroundTask
 from service.api.auth import AdminAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import AtlasOut, ErrorOut
-from service.snapshots import export_atlas, restore_atlas
+from service.fleet.snapshots import export_atlas, restore_atlas
 from service.storage import repository as repo
 
 router = APIRouter(tags=["snapshots"])

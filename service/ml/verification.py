@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.geometry import Intrinsics
 from service.ml.features import LocalFeatures
+from service.ml.geometry import Intrinsics
 from service.ml.matching import Matcher, build_matcher
 from service.ml.two_view import (
     RansacConfig,

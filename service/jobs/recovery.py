@@ -17,10 +17,10 @@ from datetime import timedelta
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
+from service.jobs.queue import Queue
 from service.storage import jobs
 from service.storage.db import transaction
 from service.storage.models import utcnow
-from workers.queue import Queue
 
 log = logging.getLogger(__name__)
 

@@ -34,12 +34,13 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import __version__, models_store
-from service.atlas_service import validate_name
+from service import __version__
+from service.atlas import model_versions as models_store
+from service.atlas.catalog import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex
-from service.index_builder import add_stored_frames
+from service.index.builder import add_stored_frames
 from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import MIGRATIONS_DIR, transaction

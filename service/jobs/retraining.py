@@ -17,10 +17,10 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import models_store
+from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
-from service.index_builder import add_stored_frames
+from service.index.builder import add_stored_frames
 from service.ml.heads import HeadsConfig
 from service.ml.training import TrainingCancelled, TrainingConfig, TrainingData, train_heads
 from service.storage import jobs

@@ -21,25 +21,22 @@ import numpy as np
 import torch
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import change_feed, models_store
+from service.atlas import change_feed
+from service.atlas import model_versions as models_store
+from service.atlas.filters import QueryFilter, resolve
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
 from service.errors import Conflict, InvalidInput, NotFound
-from service.geometry import Intrinsics, Pose
 from service.index import AtlasIndex
-from service.index_builder import add_stored_frames
+from service.index.builder import add_stored_frames
 from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.matching import resolve_matcher_name
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.two_view import RansacConfig
-from service.query_filters import QueryFilter, resolve
-from service.storage import repository as repo
-from service.storage.db import transaction
-from service.storage.feature_store import load_local_features
-from service.storage.models import Atlas, Frame, ModelVersion, Submap
-from service.verification import (
+from service.ml.verification import (
     RelativePose,
     Verification,
     VerificationConfig,
@@ -49,6 +46,10 @@ from service.verification import (
     default_min_inliers,
     rerank,
 )
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.feature_store import load_local_features
+from service.storage.models import Atlas, Frame, ModelVersion, Submap
 
 log = logging.getLogger(__name__)
 
@@ -466,7 +467,7 @@ class AtlasService:
     def follow(self, revisions: dict[int, int]) -> None:
         """Catch the loaded atlases up with the database (``revisions``: atlas id -> current).
 
-        Called by the :class:`~service.change_feed.ChangeFollower` thread: applies the frames
+        Called by the :class:`~service.atlas.change_feed.ChangeFollower` thread: applies the frames
         other processes added or removed, and forgets atlases deleted elsewhere.
         """
         with self._loaded_lock:

@@ -10,7 +10,7 @@ from fastapi import Form
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
 from service.atlas.catalog import AtlasService
-from service.atlas.filters import QueryFilter
+from service.atlas.filters import QueryFilter, make_filter
 from service.ml.geometry import Intrinsics, Pose
 
 # ----- a new frame ---------------------------------------------------------------------------
@@ -76,10 +76,11 @@ def filter_from_form(
     exclude_recent_frames: int | None,
     exclude_recent_seconds: float | None,
 ) -> QueryFilter:
-    return service.query_filter(
-        robot_id=robot_id or None,
+    return make_filter(
+        service.settings,
+        robot_id=robot_id,
         robots=robots,
-        submap=submap or None,
+        submap=submap,
         since=since,
         until=until,
         timestamp=timestamp,

@@ -77,7 +77,7 @@ class NewKey:
 
 
 def create_key(session: Session, *, name: str, role: Role, atlases: list[str]) -> NewKey:
-    from service.atlas.catalog import validate_name
+    from service.atlas.names import validate_name
 
     if not name.strip() or len(name) > 128:
         raise InvalidInput("a key's name must have 1-128 characters")

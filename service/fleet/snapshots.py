@@ -36,7 +36,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__
 from service.atlas import model_versions as models_store
-from service.atlas.catalog import validate_name
+from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex

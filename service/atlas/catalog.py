@@ -28,7 +28,7 @@ from service.ml.geometry import Intrinsics, Pose
 from service.ml.pipeline import FeaturePipeline
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.models import Atlas, Frame, Submap
+from service.storage.models import Atlas, Frame, ModelVersion, Submap
 
 
 class AtlasService:
@@ -104,18 +104,14 @@ class AtlasService:
             path.unlink(missing_ok=True)
         shutil.rmtree(self.settings.models_dir / f"atlas-{atlas_id}", ignore_errors=True)
 
-    def atlas_summary(self, session: Session, atlas: Atlas) -> dict[str, Any]:
-        version = repo.active_model_version(session, atlas_id=atlas.id)
-        return {
-            "name": atlas.name,
-            "description": atlas.description,
-            "created_at": atlas.created_at,
-            "submaps": repo.count_submaps(session, atlas_id=atlas.id),
-            "frames": repo.count_frames(session, atlas_id=atlas.id),
-            "active_model_version": version.version,
-            "classifier_trained": bool(version.config.get("trained")),
-            "feature_signature": atlas.feature_signature,
-        }
+    def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
+        """Make a model version the active one; this process serves it at once, the others
+        within their poll period."""
+        with transaction(self.sessions) as session:
+            found = repo.get_atlas(session, name=atlas_name)
+            activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
+        self.states.refresh(found.id)
+        return activated
 
     def rebuild_index(self, atlas_name: str) -> int:
         """Re-embed every frame of an atlas from stored features into a fresh index file."""

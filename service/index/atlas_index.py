@@ -346,6 +346,23 @@ class AtlasIndex:
     def load(cls, path: Path, dim: int, policy: IndexPolicy | None = None) -> AtlasIndex:
         return cls(dim, faiss.read_index(str(path)), policy)
 
+    def to_bytes(self) -> bytes:
+        """The index as the bytes of a FAISS file (what :meth:`save` writes)."""
+        with self._lock:
+            return bytes(faiss.serialize_index(self._index).tobytes())
+
+    @classmethod
+    def from_bytes(cls, data: bytes, policy: IndexPolicy | None = None) -> AtlasIndex:
+        """An index from the bytes of a FAISS file; its dimension is the file's."""
+        index = faiss.deserialize_index(np.frombuffer(data, np.uint8))
+        return cls(int(index.d), index, policy)
+
+    def entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every frame id held and its stored vector (decoded codes for the inverted file)."""
+        with self._lock:
+            ids = self.ids()
+            return ids, self._reconstruct(ids)
+
 
 def _flat(dim: int) -> Any:
     return faiss.IndexIDMap2(faiss.IndexFlatIP(dim))

@@ -47,12 +47,12 @@ class IndexPolicy:
 
     Attributes:
         flat_max_bytes: exact search while the flat index holds at most this many bytes of
-            vectors (32 MiB: about 4 ms a query on one core of our machine; 32k frames at 256-d,
-            6k at 1408-d). A scan's cost is its bytes, so the threshold is in bytes.
+            vectors (32k frames at 256-d, 6k at 1408-d; its query time is in
+            benchmarks/RESULTS.md). A scan's cost is its bytes, so the threshold is in bytes.
         bytes_per_frame: memory budget of one frame's code in the inverted file (+ its 8-byte
             id); the finest scalar quantiser that fits is chosen (fp16, 8, 6 or 4 bits). 1500
             gives float16 codes at 256-d (520 B; 8-bit codes lose near ties there) and 8-bit
-            codes at 1408-d (1416 B; 6-bit codes fit 1.1 KB but fell to recall@1 0.947).
+            codes at 1408-d (1416 B; 6-bit codes fit but lose recall, see benchmarks/RESULTS.md).
         nprobe: inverted lists visited per query.
         train_per_list: training vectors per list (k-means sample, taken in id order).
         kmeans_iterations: k-means iterations when (re)training.

@@ -21,6 +21,9 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 from sqlalchemy import event
 
+# Each request is sent this often: a request that finds the model poll period elapsed opens
+# one more session (the active-version check), so the counts vary by one.
+REPEATS = 4
 DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", "/work/shared")) / "data" / "gardenspoint_first10"
 
 
@@ -48,15 +51,17 @@ def main() -> None:
         )
 
         def count(label: str, path: str, data: dict[str, str], img: bytes) -> None:
-            begun.clear()
-            response = client.post(
-                f"/v1/atlases/campus/{path}", data=data, files={"image": ("f.jpg", img)}
-            )
-            assert response.status_code in (200, 201), response.text
-            print(f"{label:<42} {len(begun)} sessions")
+            counts = []
+            for _ in range(REPEATS):
+                begun.clear()
+                response = client.post(
+                    f"/v1/atlases/campus/{path}", data=data, files={"image": ("f.jpg", img)}
+                )
+                assert response.status_code in (200, 201), response.text
+                counts.append(len(begun))
+            print(f"{label:<34} sessions per request: {counts}")
 
         count("ingest (POST /frames)", "frames", {"submap": "s0", "robot_id": "r1"}, image)
-        count("ingest (POST /frames), second", "frames", {"submap": "s0", "robot_id": "r1"}, image)
         count("query (anonymous)", "query", {}, query_image)
         count(
             "query (robot r2, submap filter)",

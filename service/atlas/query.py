@@ -161,7 +161,7 @@ class AtlasQueries:
     ) -> QueryResult:
         with self.sessions() as session:
             atlas = self.ingest.checked_atlas(session, atlas_name)
-            state = self.states.loaded(atlas.id)
+            state = self.states.loaded(atlas.id, session)
             timings: dict[str, float] = {}
             start = time.perf_counter()
             embedding = embed(state.heads, features)

@@ -71,12 +71,13 @@ class AtlasStates:
         with self._loaded_lock:
             self.loaded_states.pop(atlas_id, None)
 
-    def loaded(self, atlas_id: int) -> LoadedAtlas:
+    def loaded(self, atlas_id: int, session: Session | None = None) -> LoadedAtlas:
         """The in-memory state of an atlas: loaded on first use, and swapped for the new one
         when another process (a retraining worker, an operator's rollback) has activated another
-        model version. Queries in flight keep the state they started with."""
+        model version. Queries in flight keep the state they started with. ``session``: the
+        caller's open session, used for the active-version check instead of a new one."""
         state = self.current(atlas_id)
-        if state is not None and not self._active_version_changed(state):
+        if state is not None and not self._active_version_changed(state, session):
             return state
         with self.lock(atlas_id):
             current = self.current(atlas_id)
@@ -103,17 +104,23 @@ class AtlasStates:
             state.checked_at = float("-inf")
         return self.loaded(atlas_id)
 
-    def _active_version_changed(self, state: LoadedAtlas) -> bool:
+    def _active_version_changed(self, state: LoadedAtlas, session: Session | None) -> bool:
         """Whether the database's active version differs (checked at most once per poll period)."""
         now = time.monotonic()
         if now - state.checked_at < self.settings.model_poll_seconds:
             return False
         state.checked_at = now
-        with self.sessions() as session:
-            try:
-                active = repo.active_model_version(session, atlas_id=state.atlas_id)
-            except NotFound:
-                return False  # the atlas is being deleted
+        if session is None:
+            with self.sessions() as own:
+                return self._active_version_changed_in(own, state)
+        return self._active_version_changed_in(session, state)
+
+    @staticmethod
+    def _active_version_changed_in(session: Session, state: LoadedAtlas) -> bool:
+        try:
+            active = repo.active_model_version(session, atlas_id=state.atlas_id)
+        except NotFound:
+            return False  # the atlas is being deleted
         return active.version != state.model_version
 
     def index_path(self, atlas_id: int, version: int) -> Path:

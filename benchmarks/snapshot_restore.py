@@ -22,13 +22,14 @@ import numpy as np
 from sqlalchemy import insert
 from synthetic_embeddings import ClusteredEmbeddings
 
-from service import models_store
+from service.atlas import model_versions as models_store
 from service.config import Settings
+from service.fleet.snapshot_restore import restore_atlas
+from service.fleet.snapshots import export_atlas
 from service.ml.backbones.registry import backbone_spec
 from service.ml.heads import HeadsConfig
 from service.ml.local_extractors import LOCAL_EXTRACTORS
 from service.ml.presets import preset_signature
-from service.snapshots import export_atlas, restore_atlas
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Frame, FrameFeatureRow

@@ -28,7 +28,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
 
 
 def cmd_atlas_check(args: argparse.Namespace) -> int:
-    from service.atlas_repair import check_atlases, unfinished_restores
+    from service.fleet.atlas_repair import check_atlases, unfinished_restores
 
     broken = 0
 
@@ -57,7 +57,7 @@ def cmd_atlas_check(args: argparse.Namespace) -> int:
 
 
 def cmd_atlas_delete(args: argparse.Namespace) -> int:
-    from service.atlas_repair import delete_atlas
+    from service.fleet.atlas_repair import delete_atlas
 
     def action() -> None:
         settings, sessions = _sessions()
@@ -68,7 +68,7 @@ def cmd_atlas_delete(args: argparse.Namespace) -> int:
 
 
 def cmd_atlas_activate(args: argparse.Namespace) -> int:
-    from service.atlas_repair import activate_version
+    from service.fleet.atlas_repair import activate_version
 
     def action() -> None:
         settings, sessions = _sessions()

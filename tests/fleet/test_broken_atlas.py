@@ -9,7 +9,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.snapshots import RESTORING_PREFIX
+from service.fleet.snapshot_restore import RESTORING_PREFIX
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from tests.api.helpers import add_frame, create_atlas

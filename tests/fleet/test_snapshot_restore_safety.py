@@ -18,7 +18,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.snapshots import restore_atlas
+from service.fleet.snapshot_restore import restore_atlas
 from service.storage import repository as repo
 from tests.conftest import make_settings, wait_ready
 
@@ -290,7 +290,7 @@ def test_a_restore_failing_midway_leaves_nothing(
     exported, server: TestClient, monkeypatch: pytest.MonkeyPatch
 ) -> None:  # type: ignore[no-untyped-def]
     """Frames were written when the files fail: the atlas, its rows and its files go."""
-    import service.snapshots as snapshots
+    import service.fleet.snapshot_restore as snapshots
 
     def disk_full(*_args: object) -> None:
         raise OSError("no space left on device")

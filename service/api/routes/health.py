@@ -7,8 +7,6 @@ from fastapi.responses import JSONResponse
 
 from service.api.deps import RuntimeDep
 from service.api.schemas import HealthOut, ReadyOut
-from service.atlas_service import AtlasService
-from service.storage import repository as repo
 
 router = APIRouter(tags=["health"])
 
@@ -29,7 +27,7 @@ def ready(runtime: RuntimeDep) -> ReadyOut | JSONResponse:
     if runtime.ready and runtime.database_reachable():
         service = runtime.service
         preset = service.pipeline.preset
-        unavailable = unavailable_atlases(service)
+        unavailable = service.unavailable_atlases()
         return ReadyOut(
             ready=True,
             detail=f"ready; {len(unavailable)} atlas(es) unavailable" if unavailable else "ready",
@@ -46,13 +44,3 @@ def ready(runtime: RuntimeDep) -> ReadyOut | JSONResponse:
         detail = "database unreachable"
     body = ReadyOut(ready=False, detail=detail)
     return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": "2"})
-
-
-def unavailable_atlases(service: AtlasService) -> dict[str, str]:
-    """Atlas name -> why it cannot be loaded (atlases deleted since are left out)."""
-    reasons = service.broken.reasons()
-    if not reasons:
-        return {}
-    with service.sessions() as session:
-        names = {a.id: a.name for a in repo.list_atlases(session)}
-    return {names[i]: reason for i, reason in reasons.items() if i in names}

@@ -28,6 +28,7 @@ from service.errors import Conflict, InvalidInput, NotFound
 from service.geometry import Intrinsics, Pose
 from service.index import AtlasIndex
 from service.index_builder import add_stored_frames
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
@@ -39,6 +40,7 @@ from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.feature_store import load_local_features
 from service.storage.models import Atlas, Frame, ModelVersion, Submap
+from service.thumbnails import make_thumbnail
 from service.verification import (
     RelativePose,
     Verification,
@@ -116,6 +118,7 @@ class QueryResult:
     verification: VerificationSummary = field(
         default_factory=lambda: VerificationSummary(enabled=False)
     )
+    query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 
 def validate_name(kind: str, name: str) -> str:
@@ -355,6 +358,8 @@ class AtlasService:
             rgb = decode_image(image_bytes, self.settings.image_limits)
             decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
+            features.thumbnail = make_thumbnail(rgb)
+        observe_stages({"decode": decode_ms, **features.timings_ms})
         return features, decode_ms
 
     def ingest_frame(
@@ -586,6 +591,7 @@ class AtlasService:
             **result.timings_ms,
             "total": round((time.perf_counter() - total_start) * 1000.0, 3),
         }
+        result.query_thumbnail = features.thumbnail
         return result
 
     def observe(
@@ -710,6 +716,7 @@ class AtlasService:
             )
         else:
             guess = SubmapGuess(True, names.get(prediction.submap_id), prediction.probability)
+        observe_stages(timings)
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         loop_closure = decide(

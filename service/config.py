@@ -100,6 +100,12 @@ class Settings(BaseSettings):
         "auto",
         description="API keys: 'auto' = required once a key exists, 'required' always, 'off' never.",
     )
+    log_format: Literal["json", "text"] = Field(
+        "json", description="Per-request log lines: one JSON object each, or plain text."
+    )
+    metrics_public: bool = Field(
+        True, description="Serve GET /metrics without a key (false: an operator key)."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 

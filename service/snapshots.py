@@ -8,6 +8,7 @@ The archive is a tar file:
   ``loop_closures.jsonl``: the rows, one JSON object a line (ids are the source's; restore maps
   them to new ones);
 - ``features.npz``: every frame's stored features as arrays (ragged keypoints by offsets);
+- ``thumbnails.npz``: the frames' thumbnails (absent from archives written before them);
 - ``models/v<N>.pt``: trained heads; ``index.faiss``: the active version's FAISS index.
 
 A restore checks the manifest and checksums and refuses an unknown format version, an unknown
@@ -34,7 +35,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import __version__, models_store
+from service import __version__, models_store, thumbnails
 from service.atlas_service import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
@@ -176,6 +177,7 @@ def export_atlas(
         members["frames.jsonl"] = _jsonl(_row(f, skip=("atlas_id",)) for f in frames)
         members["loop_closures.jsonl"] = _jsonl(_row(c, skip=("id", "atlas_id")) for c in closures)
         members["features.npz"] = _features_npz(feature_rows)
+        members[thumbnails.SNAPSHOT_MEMBER] = thumbnails.export_member(session, atlas.id)
         version_rows = []
         for version in versions:
             row = _row(version, skip=("id", "atlas_id", "weights_path"))
@@ -344,6 +346,7 @@ def restore_atlas(
                 frame_map[int(row["id"])] = frame.id
                 robot_of[frame.id] = frame.robot_id
             session.add_all(_feature_rows(members["features.npz"], frame_map))
+            thumbnails.restore_member(session, members.get(thumbnails.SNAPSHOT_MEMBER), frame_map)
             for row in _read_jsonl(members["model_versions.jsonl"]):
                 weights_path = None
                 if row["weights"] is not None:

@@ -12,7 +12,14 @@ from service.errors import Conflict, NotFound
 from service.geometry import Intrinsics, Pose
 from service.ml.features import FrameFeatures
 from service.storage.feature_store import to_row
-from service.storage.models import Atlas, Frame, FrameFeatureRow, ModelVersion, Submap
+from service.storage.models import (
+    Atlas,
+    Frame,
+    FrameFeatureRow,
+    FrameThumbnail,
+    ModelVersion,
+    Submap,
+)
 
 
 def create_atlas(
@@ -126,6 +133,8 @@ def add_frame(
     session.add(frame)
     session.flush()
     session.add(to_row(frame.id, features))
+    if features.thumbnail is not None:
+        session.add(FrameThumbnail(frame_id=frame.id, jpeg=features.thumbnail))
     session.flush()
     return frame
 

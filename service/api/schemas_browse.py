@@ -37,3 +37,11 @@ class RobotOut(BaseModel):
     first_timestamp: float | None
     last_timestamp: float | None
     last_frame_at: datetime
+
+
+class KeypointsOut(BaseModel):
+    frame_id: int
+    width: int = Field(description="Width of the decoded frame, the keypoints' pixel frame.")
+    height: int
+    total: int = Field(description="Keypoints stored for the frame.")
+    keypoints: list[list[float]] = Field(description="[x, y] of the strongest, best first.")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload
@@ -14,10 +15,11 @@ from service.api.auth import RobotAccess, get_authenticator
 from service.api.deps import RowId, ServiceDep
 from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, RelativePoseOut
-from service.api.schemas_browse import CallerOut, LoopClosureDetailOut, RobotOut
+from service.api.schemas_browse import CallerOut, KeypointsOut, LoopClosureDetailOut, RobotOut
 from service.atlas_service import validate_name
 from service.errors import NotFound
 from service.storage import repository as repo
+from service.storage.feature_store import load_local_features
 from service.storage.models import Atlas, Frame, LoopClosure, LoopClosureThumbnail
 
 router = APIRouter(tags=["browse"])
@@ -93,6 +95,37 @@ def list_robots(atlas: str, service: ServiceDep, _: RobotAccess) -> list[RobotOu
         )
         for robot_id, count, first, last, last_at in rows
     ]
+
+
+@router.get(
+    "/atlases/{atlas}/frames/{frame_id}/keypoints",
+    response_model=KeypointsOut,
+    responses={404: {"model": ErrorOut}},
+    summary="A frame's strongest stored keypoints (to draw them over the frame)",
+)
+def keypoints(
+    atlas: str,
+    frame_id: RowId,
+    service: ServiceDep,
+    _: RobotAccess,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 500,
+) -> KeypointsOut:
+    with service.sessions() as session:
+        frame = repo.get_frame(
+            session, atlas=repo.get_atlas(session, name=atlas), frame_id=frame_id
+        )
+        local = load_local_features(session, [frame_id]).get(frame_id)
+        width, height = frame.width, frame.height
+    if local is None:
+        raise NotFound(f"frame {frame_id} has no stored features")
+    best = np.argsort(-local.scores, kind="stable")[:limit]
+    return KeypointsOut(
+        frame_id=frame_id,
+        width=width,
+        height=height,
+        total=local.count,
+        keypoints=np.round(local.keypoints[best], 1).tolist(),
+    )
 
 
 @router.get(

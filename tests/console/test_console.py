@@ -83,9 +83,13 @@ class Console:
         return LoopNetClient(self.url, api_key=self.tokens[role])
 
 
-def shoot(page: Any, name: str) -> None:
+def shoot(page: Any, name: str, *, mask: tuple[str, ...] = ()) -> None:
+    """Save the page under docs/screenshots/ (``mask``: selectors painted over, e.g. tokens)."""
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(SCREENSHOTS / f"{name}.png"), full_page=True)
+    masked = [page.locator(selector) for selector in mask]
+    page.screenshot(
+        path=str(SCREENSHOTS / f"{name}.png"), full_page=True, mask=masked, mask_color="#101828"
+    )
 
 
 def thumbnails_loaded(page: Any, selector: str) -> None:
@@ -245,7 +249,7 @@ def test_admin_creates_and_revokes_a_key(console: Console) -> None:
         assert husky3.whoami().name == "husky-3"
     row = page.wait_for_selector("[data-testid=key-husky-3]")
     assert "active" in (row.text_content() or "")
-    shoot(page, "keys")
+    shoot(page, "keys", mask=("[data-testid=new-token]",))  # never commit a token
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("[data-testid=key-husky-3] [data-testid=revoke-key]")
     page.wait_for_selector("[data-testid=key-husky-3] [data-testid=key-state]:has-text('revoked')")

@@ -13,13 +13,13 @@ import torch
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas_service import AtlasService
-from service.change_feed import ChangeFollower
+from service.atlas.catalog import AtlasService
+from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
+from service.jobs.queue import Queue
 from service.ml.pipeline import FeaturePipeline
 from service.storage.db import make_engine, make_session_factory, upgrade_database
-from workers.queue import Queue
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,11 @@ class Runtime:
                 f"start-up failed: {self.error}" if self.error else "the model is still loading"
             )
         return self._service
+
+    @property
+    def last_sync(self) -> float | None:
+        """When (epoch seconds) this process last caught up with the change feed."""
+        return self._follower.last_sync if self._follower is not None else None
 
     def database_reachable(self) -> bool:
         if self.engine is None:

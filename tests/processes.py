@@ -67,8 +67,8 @@ def serving(env: dict[str, str], *, wait: bool = True, timeout: float = 120) -> 
 
 def create_token(data_dir: Path, name: str, role: str, atlases: tuple[str, ...] = ()) -> str:
     """A new API key in the service's database (migrated first); returns its token."""
-    from service.auth import Role, create_key
     from service.config import Settings
+    from service.fleet.keys import Role, create_key
     from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 
     url = Settings(data_dir=data_dir).resolved_database_url

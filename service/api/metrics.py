@@ -17,13 +17,11 @@ from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, REGISTRY, CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
-from sqlalchemy import func, select
 
 from service.api.auth import api_key_header, bearer, get_authenticator
-from service.auth import Role
-from service.change_feed import revisions
+from service.fleet.keys import Role
+from service.jobs.stats import job_figures
 from service.runtime import Runtime
-from service.storage.models import Atlas, Job
 
 router = APIRouter(tags=["metrics"])
 
@@ -46,20 +44,6 @@ class RuntimeCollector(Collector):
             return
         service = runtime.service
         yield from _gate(service.inference.stats())
-        with runtime.sessions() as session:
-            names = {i: name for i, name in session.execute(select(Atlas.id, Atlas.name))}
-            current = revisions(session)
-            job_counts = session.execute(
-                select(Job.kind, Job.status, func.count(Job.id)).group_by(Job.kind, Job.status)
-            ).all()
-            finished = session.execute(
-                select(Job.kind, Job.status, Job.started_at, Job.finished_at)
-                .where(Job.finished_at.is_not(None), Job.started_at.is_not(None))
-                .order_by(Job.id.desc())
-                .limit(RECENT_JOBS)
-            ).all()
-        with service._loaded_lock:  # a snapshot of what this process serves
-            loaded = list(service._loaded.values())
         size = GaugeMetricFamily(
             "loopnet_index_frames", "Frames in this process's index of the atlas.", labels=["atlas"]
         )
@@ -68,31 +52,27 @@ class RuntimeCollector(Collector):
             "Atlas revisions the database is ahead of this process's index.",
             labels=["atlas"],
         )
-        for state in loaded:
-            name = names.get(state.atlas_id)
-            if name is None:
-                continue
-            size.add_metric([name], float(state.index.size))
-            behind.add_metric(
-                [name], float(max(0, current.get(state.atlas_id, 0) - state.revision))
-            )
+        for served in service.served_indexes():
+            size.add_metric([served.atlas], float(served.frames))
+            behind.add_metric([served.atlas], float(served.revisions_behind))
         yield size
         yield behind
-        follower = runtime._follower
         age = GaugeMetricFamily(
             "loopnet_change_feed_sync_age_seconds",
             "Seconds since this process last caught up with the change feed.",
         )
-        if follower is not None and follower.last_sync is not None:
-            age.add_metric([], max(0.0, time.time() - follower.last_sync))
+        last_sync = runtime.last_sync
+        if last_sync is not None:
+            age.add_metric([], max(0.0, time.time() - last_sync))
         yield age
+        figures = job_figures(runtime.sessions, RECENT_JOBS)
         jobs = GaugeMetricFamily(
             "loopnet_jobs", "Jobs by kind and state.", labels=["kind", "state"]
         )
-        for kind, status, count in job_counts:
+        for kind, status, count in figures.counts:
             jobs.add_metric([kind, status], float(count))
         yield jobs
-        yield _job_durations(finished)
+        yield _job_durations(figures.durations)
 
 
 def _gate(stats: Any) -> Iterator[Any]:
@@ -119,7 +99,7 @@ def _gate(stats: Any) -> Iterator[Any]:
     yield admitted
 
 
-def _job_durations(rows: Sequence[Any]) -> HistogramMetricFamily:
+def _job_durations(rows: Sequence[tuple[str, str, float]]) -> HistogramMetricFamily:
     """A histogram of the recent finished jobs' run times (started -> finished)."""
     family = HistogramMetricFamily(
         "loopnet_job_duration_seconds",
@@ -127,8 +107,8 @@ def _job_durations(rows: Sequence[Any]) -> HistogramMetricFamily:
         labels=["kind", "state"],
     )
     groups: dict[tuple[str, str], list[float]] = {}
-    for kind, status, started, finished in rows:
-        groups.setdefault((kind, status), []).append((finished - started).total_seconds())
+    for kind, status, seconds in rows:
+        groups.setdefault((kind, status), []).append(seconds)
     for labels, durations in sorted(groups.items()):
         buckets = [(str(b), float(sum(d <= b for d in durations))) for b in JOB_BUCKETS]
         buckets.append(("+Inf", float(len(durations))))

@@ -20,7 +20,7 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.auth import Role
+from service.fleet.keys import Role
 from service.metrics import REQUEST_SECONDS
 
 log = logging.getLogger("loopnet.access")

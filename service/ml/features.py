@@ -55,7 +55,7 @@ class FrameFeatures:
         local_vector: ``D`` float32, the aggregated, L2-normalised local descriptor.
         global_vector: ``C`` float32, the L2-normalised backbone vector.
         image_size: (width, height) of the decoded image.
-        thumbnail: a small JPEG of the image (service/thumbnails.py), when made at decode.
+        thumbnail: a small JPEG of the image (service/ml/thumbnails.py), when made at decode.
     """
 
     local: LocalFeatures

@@ -10,9 +10,9 @@ from fastapi.testclient import TestClient
 from PIL import Image
 from sqlalchemy import delete, func, select
 
-from service.snapshots import export_atlas, restore_atlas
+from service.fleet.snapshots import export_atlas, restore_atlas
+from service.ml.thumbnails import LONG_SIDE
 from service.storage.models import FrameThumbnail
-from service.thumbnails import LONG_SIDE
 from tests.api.helpers import add_frame, create_atlas
 from tests.conftest import gardens_point_day_night
 

@@ -19,8 +19,8 @@ import pytest
 
 from service.client import LoopNetClient, LoopNetError
 from tests.conftest import DATA_DIR, ROOT
+from tests.jobs.test_retraining_jobs import start_worker, stop_worker
 from tests.processes import create_token, service_env, serving
-from tests.test_retraining_jobs import start_worker, stop_worker
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [

@@ -5,22 +5,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import numpy as np
 from fastapi import APIRouter, Query, Request, Response
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session, selectinload
 
-from service import thumbnails
 from service.api.auth import RobotAccess, get_authenticator
 from service.api.deps import RowId, ServiceDep
 from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, RelativePoseOut
 from service.api.schemas_browse import CallerOut, KeypointsOut, LoopClosureDetailOut, RobotOut
-from service.atlas_service import validate_name
-from service.errors import NotFound
-from service.storage import repository as repo
-from service.storage.feature_store import load_local_features
-from service.storage.models import Atlas, Frame, LoopClosure, LoopClosureThumbnail
+from service.atlas import browse
+from service.ml import thumbnails
 
 router = APIRouter(tags=["browse"])
 
@@ -50,18 +43,10 @@ def list_frames(
     offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> list[FrameOut]:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        query = select(Frame).where(Frame.atlas_id == found.id).options(selectinload(Frame.submap))
-        if robot is not None:
-            query = query.where(Frame.robot_id == validate_name("robot", robot))
-        if submap is not None:
-            query = query.where(
-                Frame.submap_id == repo.get_submap(session, atlas=found, name=submap).id
-            )
-        query = query.order_by(Frame.timestamp.is_(None), Frame.timestamp, Frame.id)
-        frames = session.scalars(query.offset(offset).limit(limit))
-        return [frame_out(found.name, frame) for frame in frames]
+    records = browse.frames(
+        service.sessions, atlas, robot=robot, submap=submap, offset=offset, limit=limit
+    )
+    return [frame_out(record) for record in records]
 
 
 @router.get(
@@ -71,29 +56,15 @@ def list_frames(
     summary="The robots that added frames to the atlas, with counts and last activity",
 )
 def list_robots(atlas: str, service: ServiceDep, _: RobotAccess) -> list[RobotOut]:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        rows = session.execute(
-            select(
-                Frame.robot_id,
-                func.count(Frame.id),
-                func.min(Frame.timestamp),
-                func.max(Frame.timestamp),
-                func.max(Frame.created_at),
-            )
-            .where(Frame.atlas_id == found.id)
-            .group_by(Frame.robot_id)
-            .order_by(Frame.robot_id)
-        ).all()
     return [
         RobotOut(
-            robot_id=robot_id,
-            frames=count,
-            first_timestamp=first,
-            last_timestamp=last,
-            last_frame_at=last_at,
+            robot_id=row.robot_id,
+            frames=row.frames,
+            first_timestamp=row.first_timestamp,
+            last_timestamp=row.last_timestamp,
+            last_frame_at=row.last_frame_at,
         )
-        for robot_id, count, first, last, last_at in rows
+        for row in browse.robots(service.sessions, atlas)
     ]
 
 
@@ -110,21 +81,13 @@ def keypoints(
     _: RobotAccess,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 500,
 ) -> KeypointsOut:
-    with service.sessions() as session:
-        frame = repo.get_frame(
-            session, atlas=repo.get_atlas(session, name=atlas), frame_id=frame_id
-        )
-        local = load_local_features(session, [frame_id]).get(frame_id)
-        width, height = frame.width, frame.height
-    if local is None:
-        raise NotFound(f"frame {frame_id} has no stored features")
-    best = np.argsort(-local.scores, kind="stable")[:limit]
+    found = browse.keypoints(service.sessions, atlas, frame_id, limit)
     return KeypointsOut(
-        frame_id=frame_id,
-        width=width,
-        height=height,
-        total=local.count,
-        keypoints=np.round(local.keypoints[best], 1).tolist(),
+        frame_id=found.frame_id,
+        width=found.width,
+        height=found.height,
+        total=found.total,
+        keypoints=found.keypoints,
     )
 
 
@@ -138,11 +101,7 @@ def keypoints(
     summary="A frame's thumbnail (a placeholder for frames stored without one)",
 )
 def thumbnail(atlas: str, frame_id: RowId, service: ServiceDep, _: RobotAccess) -> Response:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        repo.get_frame(session, atlas=found, frame_id=frame_id)
-        jpeg = thumbnails.get_thumbnail(session, frame_id=frame_id)
-    return _jpeg(jpeg)
+    return _jpeg(browse.frame_thumbnail(service.sessions, atlas, frame_id))
 
 
 def _jpeg(jpeg: bytes | None) -> Response:
@@ -158,14 +117,6 @@ def _jpeg(jpeg: bytes | None) -> Response:
     )
 
 
-def _closure(session: Session, atlas: str, closure_id: int) -> tuple[Atlas, LoopClosure]:
-    found = repo.get_atlas(session, name=atlas)
-    row = session.get(LoopClosure, closure_id)
-    if row is None or row.atlas_id != found.id:
-        raise NotFound(f"loop closure {closure_id} does not exist in atlas '{atlas}'")
-    return found, row
-
-
 @router.get(
     "/atlases/{atlas}/loop-closures/{closure_id}",
     response_model=LoopClosureDetailOut,
@@ -175,24 +126,21 @@ def _closure(session: Session, atlas: str, closure_id: int) -> tuple[Atlas, Loop
 def loop_closure(
     atlas: str, closure_id: RowId, service: ServiceDep, _: RobotAccess
 ) -> LoopClosureDetailOut:
-    with service.sessions() as session:
-        found, row = _closure(session, atlas, closure_id)
-        kept = session.get(LoopClosureThumbnail, row.id) is not None
-        return LoopClosureDetailOut(
-            id=row.id,
-            robot_id=row.robot_id,
-            matched_robot_id=row.matched_robot_id,
-            similarity=row.similarity,
-            inliers=row.inliers,
-            relative_pose=RelativePoseOut(**row.relative_pose) if row.relative_pose else None,
-            model_version=row.model_version,
-            source=row.source,
-            created_at=row.created_at,
-            frame=frame_out(
-                found.name, repo.get_frame(session, atlas=found, frame_id=row.frame_id)
-            ),
-            query_thumbnail=kept,
-        )
+    found = browse.loop_closure(service.sessions, atlas, closure_id)
+    row = found.closure
+    return LoopClosureDetailOut(
+        id=row.id,
+        robot_id=row.robot_id,
+        matched_robot_id=row.matched_robot_id,
+        similarity=row.similarity,
+        inliers=row.inliers,
+        relative_pose=RelativePoseOut(**row.relative_pose) if row.relative_pose else None,
+        model_version=row.model_version,
+        source=row.source,
+        created_at=row.created_at,
+        frame=frame_out(found.frame),
+        query_thumbnail=found.query_thumbnail,
+    )
 
 
 @router.get(
@@ -204,8 +152,4 @@ def loop_closure(
 def loop_closure_thumbnail(
     atlas: str, closure_id: RowId, service: ServiceDep, _: RobotAccess
 ) -> Response:
-    with service.sessions() as session:
-        _closure(session, atlas, closure_id)
-        kept = session.get(LoopClosureThumbnail, closure_id)
-        jpeg = kept.jpeg if kept is not None else None
-    return _jpeg(jpeg)
+    return _jpeg(browse.closure_thumbnail(service.sessions, atlas, closure_id))

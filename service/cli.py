@@ -8,15 +8,17 @@ database directly.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.cli_atlas import add_parsers as add_atlas_parsers
 from service.cli_fleet import add_parsers as add_fleet_parsers
+
+if TYPE_CHECKING:
+    from service.client import LoopNetClient, LoopNetError
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -189,6 +191,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         host=args.host or settings.host,
         port=args.port or settings.port,
         log_level="info",
+        access_log=False,  # service.api.request_log writes one line per request instead
     )
     return 0
 
@@ -201,26 +204,21 @@ def cmd_worker(args: argparse.Namespace) -> int:
     return 0
 
 
-def _client(url: str):  # type: ignore[no-untyped-def]
-    import httpx
+def _client(url: str) -> LoopNetClient:
+    from service.client import LoopNetClient
 
-    key = os.environ.get("LOOPNET_API_KEY")  # needed once the service asks for keys
-    headers = {"Authorization": f"Bearer {key}"} if key else {}
-    return httpx.Client(base_url=url.rstrip("/") + "/v1", timeout=300, headers=headers)
+    return LoopNetClient(url)  # the key from LOOPNET_API_KEY, needed once the service asks
 
 
-def _fail(response) -> int:  # type: ignore[no-untyped-def]
-    try:
-        detail = response.json().get("detail", response.text)
-    except ValueError:
-        detail = response.text
-    print(f"error {response.status_code}: {detail}", file=sys.stderr)
+def _fail(error: LoopNetError) -> int:
+    print(f"error {error.status}: {error.detail}", file=sys.stderr)
     return 1
 
 
 def cmd_ingest(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from service.client import LoopNetError
     from service.evaluation.datasets import list_images
 
     if not args.folder.is_dir():
@@ -231,40 +229,41 @@ def cmd_ingest(args: argparse.Namespace) -> int:
         print(f"error: no JPEG/PNG/WebP images in {args.folder}", file=sys.stderr)
         return 2
     with _client(args.url) as client:
-        if args.create:
-            for path, body in (
-                ("/atlases", {"name": args.atlas}),
-                (f"/atlases/{args.atlas}/submaps", {"name": args.submap}),
-            ):
-                response = client.post(path, json=body)
-                if response.status_code not in (201, 409):
-                    return _fail(response)
+        try:
+            if args.create:
+                _create_missing(client, args.atlas, args.submap)
+        except LoopNetError as error:
+            return _fail(error)
         for image in tqdm(images, desc=f"ingest {args.atlas}/{args.submap}", unit="frame"):
-            response = client.post(
-                f"/atlases/{args.atlas}/frames",
-                data={"submap": args.submap, "robot_id": args.robot},
-                files={"image": (image.name, image.read_bytes())},
-            )
-            if response.status_code != 201:
+            try:
+                client.add_frame(args.atlas, image, submap=args.submap, robot_id=args.robot)
+            except LoopNetError as error:
                 print(f"{image}: ", end="", file=sys.stderr)
-                return _fail(response)
+                return _fail(error)
     print(f"ingested {len(images)} frames into {args.atlas}/{args.submap}")
     return 0
 
 
+def _create_missing(client: LoopNetClient, atlas: str, submap: str) -> None:
+    from service.client import LoopNetError
+
+    for create in (lambda: client.create_atlas(atlas), lambda: client.create_submap(atlas, submap)):
+        try:
+            create()
+        except LoopNetError as error:
+            if error.status != 409:  # 409: it exists already
+                raise
+
+
 def cmd_query(args: argparse.Namespace) -> int:
-    data: dict[str, str] = {"k": str(args.k)}
-    if args.robot:
-        data["robot_id"] = args.robot
+    from service.client import LoopNetError
+
     with _client(args.url) as client:
-        response = client.post(
-            f"/atlases/{args.atlas}/query",
-            data=data,
-            files={"image": (args.image.name, args.image.read_bytes())},
-        )
-    if response.status_code != 200:
-        return _fail(response)
-    print(json.dumps(response.json(), indent=2))
+        try:
+            answer = client.query(args.atlas, args.image, k=args.k, robot_id=args.robot)
+        except LoopNetError as error:
+            return _fail(error)
+    print(answer.model_dump_json(indent=2))
     return 0
 
 

@@ -107,6 +107,12 @@ class Settings(BaseSettings):
     snapshot_max_total_bytes: int = Field(
         2 * 1024**3, ge=1024, description="Largest sum of members a snapshot restore reads."
     )
+    log_format: Literal["json", "text"] = Field(
+        "json", description="Per-request log lines: one JSON object each, or plain text."
+    )
+    metrics_public: bool = Field(
+        True, description="Serve GET /metrics without a key (false: an operator key)."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 

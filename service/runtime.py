@@ -98,6 +98,11 @@ class Runtime:
             )
         return self._service
 
+    @property
+    def last_sync(self) -> float | None:
+        """When (epoch seconds) this process last caught up with the change feed."""
+        return self._follower.last_sync if self._follower is not None else None
+
     def database_reachable(self) -> bool:
         if self.engine is None:
             return False

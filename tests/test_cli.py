@@ -3,37 +3,18 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
-import socket
 import subprocess
-import sys
-import time
 from pathlib import Path
 
-import httpx
 import pytest
 
-from tests.conftest import DATA_DIR, TEST_LONG_SIDE, TEST_MAX_KEYPOINTS
-
-LOOPNET = [sys.executable, "-m", "service.cli"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.conftest import DATA_DIR
+from tests.processes import LOOPNET, service_env, serving
 
 
 @pytest.fixture
 def env(tmp_path: Path) -> dict[str, str]:
-    return {
-        **os.environ,
-        "LOOPNET_DATA_DIR": str(tmp_path / "data"),
-        "LOOPNET_LONG_SIDE": str(TEST_LONG_SIDE),
-        "LOOPNET_MAX_KEYPOINTS": str(TEST_MAX_KEYPOINTS),
-        "LOOPNET_PORT": str(free_port()),
-    }
+    return service_env(tmp_path / "data")
 
 
 def run(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -42,22 +23,7 @@ def run(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.slow
 def test_serve_ingest_query_reindex(env: dict[str, str]) -> None:
-    url = f"http://127.0.0.1:{env['LOOPNET_PORT']}"
-    server = subprocess.Popen(
-        [*LOOPNET, "serve"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if httpx.get(f"{url}/v1/ready").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert server.poll() is None, server.stdout.read()  # type: ignore[union-attr]
-            assert time.monotonic() < deadline, "server not ready in 120 s"
-            time.sleep(0.3)
-
+    with serving(env) as url:
         night = DATA_DIR / "gardenspoint_first10" / "ref"
         ingested = run(
             env,
@@ -82,9 +48,6 @@ def test_serve_ingest_query_reindex(env: dict[str, str]) -> None:
 
         missing = run(env, "query", str(night / "4.jpg"), "--atlas", "nowhere", "--url", url)
         assert missing.returncode == 1 and "atlas 'nowhere' does not exist" in missing.stderr
-    finally:
-        server.send_signal(signal.SIGTERM)
-        server.wait(timeout=60)
     assert (Path(env["LOOPNET_DATA_DIR"]) / "indexes" / "atlas-1-v1.faiss").is_file()
 
     reindexed = run(env, "reindex")

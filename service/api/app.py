@@ -9,9 +9,12 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
+from service.api import metrics
 from service.api.errors import install_error_handlers
+from service.api.request_log import RequestLogMiddleware
 from service.api.routes import (
     atlases,
+    browse,
     features,
     frames,
     health,
@@ -23,6 +26,7 @@ from service.api.routes import (
 )
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
+from service.console.router import install as install_console
 from service.fleet.keys import Authenticator
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
@@ -76,9 +80,13 @@ def create_app(
         keys,
         loop_closures,
         snapshots,
+        browse,
     )
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
+    metrics.install(app, runtime)
+    install_console(app)
+    app.add_middleware(RequestLogMiddleware, log_format=runtime.settings.log_format)
     return app
 
 

@@ -38,7 +38,9 @@ def require(role: Role) -> Callable[..., Principal]:
         api_key: Annotated[str | None, Depends(api_key_header)],
     ) -> Principal:
         token = credentials.credentials if credentials is not None else api_key
-        return authenticator.authorize(token, role, request.path_params.get("atlas"))
+        caller = authenticator.authorize(token, role, request.path_params.get("atlas"))
+        request.state.caller = caller  # the request log names the robot
+        return caller
 
     dependency.__name__ = f"require_{role.name}"
     return dependency

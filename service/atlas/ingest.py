@@ -18,11 +18,13 @@ from service.atlas.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.ml.thumbnails import make_thumbnail
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame
@@ -73,6 +75,8 @@ class FrameIngest:
             rgb = decode_image(image_bytes, self.settings.image_limits)
             decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
+            features.thumbnail = make_thumbnail(rgb)
+        observe_stages({"decode": decode_ms, **features.timings_ms})
         return features, decode_ms
 
     def ingest_frame(

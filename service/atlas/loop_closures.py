@@ -7,6 +7,7 @@ can list the links between the robots' trajectories.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from datetime import datetime
 
 from sqlalchemy import or_, select
@@ -14,7 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.results import QueryResult
 from service.storage.db import transaction
-from service.storage.models import Frame, LoopClosure, Submap
+from service.storage.models import Frame, LoopClosure, LoopClosureThumbnail, Submap
 
 SOURCES = ("query", "observe")
 
@@ -42,9 +43,13 @@ def record_if_inter_robot(
             similarity=float(match.similarity),
             model_version=result.model_version,
             source=source,
+            inliers=match.inliers,
+            relative_pose=asdict(match.relative_pose) if match.relative_pose else None,
         )
         session.add(row)
         session.flush()
+        if result.query_thumbnail is not None:
+            session.add(LoopClosureThumbnail(loop_closure_id=row.id, jpeg=result.query_thumbnail))
         return row.id
 
 

@@ -52,6 +52,7 @@ class QueryResult:
     verification: VerificationSummary = field(
         default_factory=lambda: VerificationSummary(enabled=False)
     )
+    query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

@@ -102,8 +102,15 @@ class Archive:
     members: dict[str, bytes]  # every member but the manifest, checksums verified
 
 
+OPTIONAL_MEMBERS = frozenset({"thumbnails.npz"})  # absent from archives written before them
+
+
 def _allowed(name: str) -> bool:
-    return name in REQUIRED_MEMBERS or WEIGHTS_MEMBER.match(name) is not None
+    return (
+        name in REQUIRED_MEMBERS
+        or name in OPTIONAL_MEMBERS
+        or WEIGHTS_MEMBER.match(name) is not None
+    )
 
 
 def _read_members(path: Path, limits: ArchiveLimits) -> dict[str, bytes]:

@@ -23,6 +23,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import model_versions as models_store
+from service.atlas import thumbnails
 from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
@@ -91,6 +92,9 @@ def restore_atlas(
         _write_files(settings, atlas_id, snapshot, vectors, submap_map, frame_map, written)
         with transaction(sessions) as session:
             _write_loop_closures(session, atlas_id, snapshot, submap_map, frame_map)
+            thumbnails.restore_member(
+                session, archive.members.get(thumbnails.SNAPSHOT_MEMBER), frame_map
+            )
             session.execute(update(Atlas).where(Atlas.id == atlas_id).values(name=name))
     except BaseException as exc:
         _undo(settings, sessions, atlas_id, written)

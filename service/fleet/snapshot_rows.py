@@ -107,6 +107,13 @@ class ModelVersionRow(_Row):
     weights: str | None  # required key: null for untrained heads rebuilt from the config
 
 
+class RelativePoseRow(_Row):
+    """A verified closure's relative pose (see :class:`service.ml.verification.RelativePose`)."""
+
+    rotation: tuple[Finite, Finite, Finite, Finite]
+    translation: tuple[Finite, Finite, Finite]
+
+
 class LoopClosureRow(_Row):
     robot_id: Name
     frame_id: RowId
@@ -116,6 +123,8 @@ class LoopClosureRow(_Row):
     model_version: int = Field(ge=1)
     source: Literal["query", "observe"]
     created_at: datetime
+    inliers: int | None = Field(None, ge=0)  # absent from archives written before them
+    relative_pose: RelativePoseRow | None = None
 
 
 RowT = TypeVar("RowT", bound=BaseModel)

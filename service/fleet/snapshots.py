@@ -8,6 +8,7 @@ The archive is a tar file:
   ``loop_closures.jsonl``: the rows, one JSON object a line (ids are the source's; restore maps
   them to new ones);
 - ``features.npz``: every frame's stored features as arrays (ragged keypoints by offsets);
+- ``thumbnails.npz``: the frames' thumbnails (absent from archives written before them);
 - ``models/v<N>.pt``: trained heads; ``index.faiss``: the active version's FAISS index.
 
 This module writes it; :mod:`service.fleet.snapshot_restore` reads it back without trusting it
@@ -32,6 +33,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__
 from service.atlas import model_versions as models_store
+from service.atlas import thumbnails
 from service.config import Settings
 from service.errors import Conflict
 from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision
@@ -136,6 +138,7 @@ def export_atlas(
         index = AtlasIndex(heads.config.fused_dim)
         add_stored_frames(session, atlas.id, heads, index)
         members["index.faiss"] = index.to_bytes()
+        members[thumbnails.SNAPSHOT_MEMBER] = thumbnails.export_member(session, atlas.id)
         manifest = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,

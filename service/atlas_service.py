@@ -9,7 +9,6 @@ transaction, and only then add the vector to the in-memory index.
 from __future__ import annotations
 
 import logging
-import re
 import shutil
 import threading
 import time
@@ -34,6 +33,7 @@ from service.ml.images import decode_image
 from service.ml.matching import resolve_matcher_name
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.two_view import RansacConfig
+from service.names import validate_name
 from service.query_filters import QueryFilter, resolve
 from service.storage import repository as repo
 from service.storage.db import transaction
@@ -52,7 +52,6 @@ from service.verification import (
 
 log = logging.getLogger(__name__)
 
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 # Frames searched per query beyond k, so the margin finds the best other place even when the
 # top k all lie in the match's submap.
 MARGIN_POOL = 32
@@ -116,15 +115,6 @@ class QueryResult:
     verification: VerificationSummary = field(
         default_factory=lambda: VerificationSummary(enabled=False)
     )
-
-
-def validate_name(kind: str, name: str) -> str:
-    if not NAME_PATTERN.match(name):
-        raise InvalidInput(
-            f"{kind} name {name!r} is invalid: use 1-64 letters, digits, '.', '_' or '-', "
-            "starting with a letter or digit"
-        )
-    return name
 
 
 class AtlasService:

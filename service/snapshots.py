@@ -35,12 +35,12 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__, models_store
-from service.atlas_service import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex
 from service.index_builder import add_stored_frames
 from service.ml.presets import preset_signature
+from service.names import validate_name
 from service.storage import repository as repo
 from service.storage.db import MIGRATIONS_DIR, transaction
 from service.storage.models import (

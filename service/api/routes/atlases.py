@@ -6,7 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Response, status
 
-from service.api.auth import AdminAccess, OperatorAccess, RobotAccess
+from service.api.auth import AdminAccess, OperatorAccess, RobotAccess, UnscopedAdminAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
 from service.storage import repository as repo
@@ -24,7 +24,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
     responses={409: {"model": ErrorOut}},
     summary="Create an atlas",
 )
-def create_atlas(body: AtlasIn, service: ServiceDep, _: AdminAccess) -> AtlasOut:
+def create_atlas(body: AtlasIn, service: ServiceDep, _: UnscopedAdminAccess) -> AtlasOut:
     service.create_atlas(body.name, body.description)
     with service.sessions() as session:
         return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=body.name)))

@@ -1,4 +1,8 @@
-"""API keys (admin): create (the token is shown once), list, revoke."""
+"""API keys (admin): create (the token is shown once), list, revoke.
+
+A scoped admin works within its atlases: it creates keys only for them (and at most admin),
+lists and revokes only keys limited to them (others answer as if they did not exist).
+"""
 
 from __future__ import annotations
 
@@ -15,7 +19,11 @@ from service.storage.db import transaction
 from service.storage.models import ApiKey
 
 router = APIRouter(tags=["keys"])
-ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorOut}, 403: {"model": ErrorOut}}
+ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorOut},
+    403: {"model": ErrorOut},
+    404: {"model": ErrorOut},
+}
 
 
 def key_out(key: ApiKey) -> ApiKeyOut:
@@ -35,24 +43,26 @@ def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
     responses=ERRORS,
     summary="Create an API key",
 )
-def create(body: ApiKeyIn, runtime: RuntimeDep, _: AdminAccess) -> NewApiKeyOut:
+def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKeyOut:
     with transaction(_sessions(runtime)) as session:
-        new = create_key(session, name=body.name, role=Role[body.role], atlases=body.atlases)
+        new = create_key(
+            session, name=body.name, role=Role[body.role], atlases=body.atlases, creator=caller
+        )
         return NewApiKeyOut(**key_out(new.key).model_dump(), token=new.token)
 
 
 @router.get("/keys", response_model=list[ApiKeyOut], responses=ERRORS, summary="List API keys")
-def list_all(runtime: RuntimeDep, _: AdminAccess) -> list[ApiKeyOut]:
+def list_all(runtime: RuntimeDep, caller: AdminAccess) -> list[ApiKeyOut]:
     with _sessions(runtime)() as session:
-        return [key_out(key) for key in list_keys(session)]
+        return [key_out(key) for key in list_keys(session, viewer=caller)]
 
 
 @router.delete(
     "/keys/{key_id}",
     response_model=ApiKeyOut,
-    responses={**ERRORS, 404: {"model": ErrorOut}},
+    responses=ERRORS,
     summary="Revoke an API key",
 )
-def revoke(key_id: RowId, runtime: RuntimeDep, _: AdminAccess) -> ApiKeyOut:
+def revoke(key_id: RowId, runtime: RuntimeDep, caller: AdminAccess) -> ApiKeyOut:
     with transaction(_sessions(runtime)) as session:
-        return key_out(revoke_key(session, key_id=key_id))
+        return key_out(revoke_key(session, key_id=key_id, revoker=caller))

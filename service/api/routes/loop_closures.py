@@ -10,8 +10,8 @@ from fastapi import APIRouter, Query
 from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, LoopClosureOut
-from service.atlas_service import validate_name
 from service.loop_closures import list_loop_closures
+from service.names import validate_name
 from service.storage import repository as repo
 
 router = APIRouter(tags=["loop closures"])

@@ -6,7 +6,7 @@ too low, the route's ``{atlas}`` path parameter is not one of its atlases, or (u
 is limited to some atlases. The key itself (``Authorization: Bearer <key>`` or ``X-API-Key``)
 was already checked by :class:`~service.api.guard.RequestGuard` before the body was read (401);
 dependencies run before FastAPI validates the body, so a 422 means the caller got past auth.
-The parameter's value is the caller (:class:`~service.auth.Principal`).
+The parameter's value is the caller (:class:`~service.fleet.keys.Principal`).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from typing import Annotated, overload
 from fastapi import Depends, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from service.auth import Authenticator, Principal, Role
 from service.errors import Forbidden, NotReady
+from service.fleet.keys import Authenticator, Principal, Role
 
 bearer = HTTPBearer(auto_error=False, description="An API key from `loopnet keys create`.")
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False)

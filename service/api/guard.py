@@ -22,9 +22,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.auth import PRINCIPAL_KEY, presented_token
 from service.api.errors import error_response
-from service.auth import Authenticator
 from service.config import Settings
 from service.errors import LoopNetError, RequestTooLarge
+from service.fleet.keys import Authenticator
 
 OPEN_PATHS = frozenset(
     {"/v1/health", "/v1/ready", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}

@@ -21,7 +21,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.auth import Role, create_key
+from service.fleet.keys import Role, create_key
 from service.storage.db import transaction
 from tests.conftest import make_settings, wait_ready
 

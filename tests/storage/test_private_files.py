@@ -7,9 +7,9 @@ from pathlib import Path
 
 from sqlalchemy import text
 
+from service.jobs.queue import Queue
 from service.storage.db import make_engine, upgrade_database
 from tests.conftest import make_settings
-from workers.queue import Queue
 
 
 def mode(path: Path) -> int:

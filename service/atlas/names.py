@@ -1,4 +1,4 @@
-"""Names of atlases, submaps and robots: one rule, checked without loading any model."""
+"""The one rule for names of atlases, submaps, robots and API keys."""
 
 from __future__ import annotations
 

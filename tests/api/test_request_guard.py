@@ -18,7 +18,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from service.api.app import create_app
-from service.auth import Role, create_key
+from service.fleet.keys import Role, create_key
 from service.storage.db import transaction
 from tests.conftest import make_settings
 

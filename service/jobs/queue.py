@@ -2,7 +2,7 @@
 
 The API process enqueues with it; ``loopnet worker`` consumes with it. Both build it from the
 same settings, so they agree on the storage (a SQLite file in the data directory, or Redis).
-Messages are JSON carrying one job id (:mod:`workers.messages`), never pickles.
+Messages are JSON carrying one job id (:mod:`service.jobs.messages`), never pickles.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Any
 from huey import Huey, RedisHuey, SqliteHuey
 
 from service.config import Settings
+from service.jobs.messages import JobIdSerializer, RejectedMessage
 from service.storage.db import create_private_file, make_private_dir
-from workers.messages import JobIdSerializer, RejectedMessage
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class Queue:
     def _run_job(self, job_id: int) -> None:
         """Executed in the worker: the job runner is built on first use, once per process."""
         if self._runner is None:
-            from service.retraining import JobRunner
+            from service.jobs.retraining import JobRunner
             from service.storage.db import make_engine, make_session_factory
 
             engine = make_engine(self.settings.resolved_database_url)

@@ -14,9 +14,9 @@ from typing import Any
 import pytest
 from huey.consumer import Worker
 
+from service.jobs.messages import RejectedMessage
+from service.jobs.queue import Queue
 from tests.conftest import make_settings
-from workers.messages import RejectedMessage
-from workers.queue import Queue
 
 
 class CreatesAFile:

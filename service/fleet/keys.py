@@ -25,20 +25,19 @@ from __future__ import annotations
 import enum
 import hashlib
 import logging
-import math
 import secrets
-import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Forbidden, InvalidInput, NotFound, TooManyFailures, Unauthorized
-from service.names import validate_name
+from service.fleet.failures import FailureLimiter
+from service.storage.db import transaction
 from service.storage.models import ApiKey, Atlas, utcnow
 
 log = logging.getLogger(__name__)
@@ -151,44 +150,28 @@ def revoke_key(session: Session, *, key_id: int, revoker: Principal = OPEN) -> A
     return key
 
 
-class FailureLimiter:
-    """Failed authentications per client address in a sliding window; over the limit, 429."""
+def issue(
+    sessions: sessionmaker[Session],
+    *,
+    name: str,
+    role: Role,
+    atlases: list[str],
+    creator: Principal = OPEN,
+) -> NewKey:
+    """Create a key in its own transaction (the API and the CLI call this; the CLI, run on the
+    server itself, creates as :data:`OPEN`)."""
+    with transaction(sessions) as session:
+        return create_key(session, name=name, role=role, atlases=atlases, creator=creator)
 
-    MAX_ADDRESSES = 10_000  # addresses remembered at once (the oldest are forgotten first)
 
-    def __init__(self, limit: int, window_s: float) -> None:
-        self.limit = limit
-        self.window_s = window_s
-        self._failures: OrderedDict[str, deque[float]] = OrderedDict()
-        self._lock = threading.Lock()
+def listing(sessions: sessionmaker[Session], *, viewer: Principal = OPEN) -> list[ApiKey]:
+    with sessions() as session:
+        return list_keys(session, viewer=viewer)
 
-    def _recent(self, address: str, now: float) -> deque[float]:
-        times = self._failures.get(address, deque())
-        while times and now - times[0] >= self.window_s:
-            times.popleft()
-        return times
 
-    def check(self, address: str) -> None:
-        """Raise :class:`TooManyFailures` while ``address`` is over the limit."""
-        now = time.monotonic()
-        with self._lock:
-            times = self._recent(address, now)
-            if len(times) >= self.limit:
-                wait = times[len(times) - self.limit] + self.window_s - now
-                raise TooManyFailures(
-                    "too many failed authentications from this address; retry later",
-                    retry_after_s=max(1, math.ceil(wait)),
-                )
-
-    def record(self, address: str) -> None:
-        now = time.monotonic()
-        with self._lock:
-            times = self._recent(address, now)
-            times.append(now)
-            self._failures[address] = times
-            self._failures.move_to_end(address)
-            while len(self._failures) > self.MAX_ADDRESSES:
-                self._failures.popitem(last=False)
+def revoke(sessions: sessionmaker[Session], *, key_id: int, revoker: Principal = OPEN) -> ApiKey:
+    with transaction(sessions) as session:
+        return revoke_key(session, key_id=key_id, revoker=revoker)
 
 
 class Authenticator:

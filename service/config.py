@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.fleet.snapshot_archive import ArchiveLimits
-from service.ml.images import ImageLimits
-from service.ml.presets import ModelPreset, resolve_preset
+
+if TYPE_CHECKING:  # the ML modules import torch; the keys and snapshot commands must not
+    from service.ml.images import ImageLimits
+    from service.ml.presets import ModelPreset
 
 
 class Settings(BaseSettings):
@@ -59,6 +61,9 @@ class Settings(BaseSettings):
     )
     max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
     max_image_pixels: int = Field(40_000_000, ge=1024)
+    max_snapshot_bytes: int = Field(
+        4 * 1024**3, ge=1024, description="Largest snapshot archive POST /v1/snapshots accepts."
+    )
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
     model_poll_seconds: float = Field(
         1.0, ge=0.0, description="How often a process checks for a newly activated model version."
@@ -113,6 +118,12 @@ class Settings(BaseSettings):
     metrics_public: bool = Field(
         True, description="Serve GET /metrics without a key (false: an operator key)."
     )
+    auth_failure_limit: int = Field(
+        20, ge=1, description="Failed authentications one client address may make per window."
+    )
+    auth_failure_window_seconds: float = Field(
+        60.0, gt=0, description="The window of auth_failure_limit; beyond it, 429."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 
@@ -136,6 +147,8 @@ class Settings(BaseSettings):
 
     @property
     def image_limits(self) -> ImageLimits:
+        from service.ml.images import ImageLimits
+
         return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)
 
     @property
@@ -143,6 +156,8 @@ class Settings(BaseSettings):
         return ArchiveLimits(self.snapshot_max_member_bytes, self.snapshot_max_total_bytes)
 
     def preset(self) -> ModelPreset:
+        from service.ml.presets import resolve_preset
+
         return resolve_preset(
             self.model_preset,
             backbone=self.backbone,

@@ -19,7 +19,12 @@ from service.config import Settings
 from service.errors import NotReady
 from service.jobs.queue import Queue
 from service.ml.pipeline import FeaturePipeline
-from service.storage.db import make_engine, make_session_factory, upgrade_database
+from service.storage.db import (
+    make_engine,
+    make_private_dir,
+    make_session_factory,
+    upgrade_database,
+)
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +45,7 @@ class Runtime:
 
     def start(self, *, background: bool = True) -> None:
         """Migrate the database, then load the CNNs and every atlas's index."""
-        self.settings.data_dir.mkdir(parents=True, exist_ok=True)
+        make_private_dir(self.settings.data_dir)
         if self.settings.torch_threads:
             torch.set_num_threads(self.settings.torch_threads)
         upgrade_database(self.settings.resolved_database_url)

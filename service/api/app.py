@@ -11,6 +11,7 @@ from fastapi import FastAPI
 from service import __version__
 from service.api import metrics
 from service.api.errors import install_error_handlers
+from service.api.guard import RequestGuard
 from service.api.request_log import RequestLogMiddleware
 from service.api.routes import (
     atlases,
@@ -70,6 +71,7 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app)
+    app.add_middleware(RequestGuard, settings=runtime.settings)
     routers = (
         health,
         atlases,

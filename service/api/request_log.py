@@ -18,6 +18,7 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any
 
+from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.fleet.keys import Role
@@ -57,7 +58,38 @@ def route_template(scope: Scope) -> str:
     path = getattr(context, "path", None) or getattr(scope.get("route"), "path", None)
     if isinstance(path, str):
         return path
+    matched = _match_route(scope)
+    if matched is not None:
+        return matched[0]
     return "/console/{asset}" if scope["path"].startswith("/console/") else "unmatched"
+
+
+def path_params(scope: Scope) -> dict[str, Any]:
+    """The request's path parameters, also when it was answered before routing (the guard's
+    401, 413 and 429)."""
+    if scope.get("path_params"):
+        return dict(scope["path_params"])
+    matched = _match_route(scope)
+    return matched[1] if matched is not None else {}
+
+
+def _match_route(scope: Scope) -> tuple[str, dict[str, Any]] | None:
+    """Match a request the router never saw against the API's path templates."""
+    app = scope.get("app")
+    if app is None or not hasattr(app, "openapi"):
+        return None
+    templates = _TEMPLATES.get(id(app))
+    if templates is None:
+        templates = [(t, compile_path(t)[0]) for t in app.openapi().get("paths", {})]
+        _TEMPLATES[id(app)] = templates
+    for template, pattern in templates:
+        found = pattern.match(scope["path"])
+        if found is not None:
+            return template, found.groupdict()
+    return None
+
+
+_TEMPLATES: dict[int, list[tuple[str, re.Pattern[str]]]] = {}
 
 
 def robot_of(scope: Scope) -> str | None:
@@ -115,7 +147,7 @@ class RequestLogMiddleware:
             "path": scope["path"],
             "status": status,
             "duration_ms": round(seconds * 1000.0, 2),
-            "atlas": scope.get("path_params", {}).get("atlas"),
+            "atlas": path_params(scope).get("atlas"),
             "robot": robot_of(scope),
             "request_id": request_id,
         }

@@ -93,6 +93,7 @@ class JobRunner:
             ids, local, global_, submaps, _ = load_stored_vectors(session, atlas_id)
         if len(ids) == 0:
             raise ValueError("the atlas has no frames to train on")
+        config.check_fits(base)
         base = HeadsConfig(
             local_dim=base.local_dim,
             global_dim=base.global_dim,

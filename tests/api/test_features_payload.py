@@ -87,6 +87,19 @@ def _rewrite(payload: bytes, **changes: np.ndarray | None) -> bytes:
     return buffer.getvalue()
 
 
+def _renamed(payload: bytes, old: str, new: str) -> bytes:
+    """The payload with one zip member renamed."""
+    buffer = io.BytesIO()
+    with (
+        zipfile.ZipFile(buffer, "w") as archive,
+        zipfile.ZipFile(io.BytesIO(payload)) as original,
+    ):
+        for info in original.infolist():
+            name = new if info.filename == old else info.filename
+            archive.writestr(name, original.read(info))
+    return buffer.getvalue()
+
+
 def _zip_bomb(payload: bytes) -> bytes:
     buffer = io.BytesIO()
     with (
@@ -146,6 +159,13 @@ MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] 
         lambda p, s, f: _rewrite(p, scores=np.array([{"a": 1}], dtype=object)),
         "unreadable",
     ),
+    "keypoints with three columns": (
+        lambda p, s, f: _rewrite(
+            p, keypoints=np.concatenate([f.local.keypoints, f.local.keypoints[:, :1]], axis=1)
+        ),
+        "keypoints must be N x 2",
+    ),
+    "member without .npy": (lambda p, s, f: _renamed(p, "scores.npy", "scores"), "exactly"),
     "image size": (lambda p, s, f: _rewrite(p, image_size=np.array([0, 10])), "image_size"),
     "zip bomb": (lambda p, s, f: _zip_bomb(p), "inflates to"),
 }

@@ -10,6 +10,7 @@ from service.api.auth import OperatorAccess
 from service.api.deps import RowId, RuntimeDep, ServiceDep
 from service.api.schemas import ErrorOut, JobIn, JobOut
 from service.errors import InvalidInput, NotReady
+from service.ml.heads import HeadsConfig
 from service.ml.training import TrainingConfig
 from service.storage import jobs
 from service.storage import repository as repo
@@ -40,12 +41,14 @@ def submit_job(
     atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
 ) -> JobOut:
     params = body.params.model_dump()
-    try:
-        TrainingConfig(**{**params, "train": tuple(params["train"])})
-    except ValueError as exc:
-        raise InvalidInput(str(exc)) from exc
     with transaction(service.sessions) as session:
         found = repo.get_atlas(session, name=atlas)
+        try:
+            config = TrainingConfig(**{**params, "train": tuple(params["train"])})
+            active = repo.active_model_version(session, atlas_id=found.id)
+            config.check_fits(HeadsConfig(**active.config["heads"]))
+        except ValueError as exc:
+            raise InvalidInput(str(exc)) from exc
         populated = repo.count_populated_submaps(session, atlas_id=found.id)
         if populated < 2:
             raise InvalidInput(

@@ -22,6 +22,7 @@ from service.api.forms import (
     Timestamp,
     Until,
     filter_from_form,
+    frame_robot,
     intrinsics_from_form,
     pose_from_form,
 )
@@ -110,7 +111,7 @@ def observe(
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
-    robot_id: FrameRobot,
+    robot_id: FrameRobot = None,
     timestamp: Timestamp = None,
     pose: PoseField = None,
     intrinsics: QueryIntrinsics = None,
@@ -124,7 +125,7 @@ def observe(
     exclude_recent_frames: ExcludeFrames = None,
     exclude_recent_seconds: ExcludeSeconds = None,
 ) -> ObserveOut:
-    robot_id = acting_robot(caller, robot_id)
+    robot_id = frame_robot(caller, robot_id)
     query_filter = filter_from_form(
         service,
         robot_id,

@@ -9,6 +9,7 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
+from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
 from service.api.routes import (
     atlases,
@@ -63,9 +64,12 @@ def create_app(
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # served from the package's files, below: no CDN
+        redoc_url=None,
     )
     app.state.runtime = runtime
     install_error_handlers(app)
+    install_offline_docs(app)
     routers = (
         health,
         atlases,

@@ -27,7 +27,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    return int(args.func(args) or 0)
+    # one INFO line per HTTP request would break the progress bars of ingest and eval
+    for chatty in ("httpx", "httpcore"):
+        logging.getLogger(chatty).setLevel(logging.WARNING)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        message = one_line_error(exc, getattr(args, "url", None))
+        if message is None:
+            raise
+        print(f"error: {message}", file=sys.stderr)
+        return 1
+
+
+def one_line_error(exc: Exception, url: str | None) -> str | None:
+    """What the user can act on, for the errors a command line meets (None: a real bug)."""
+    if isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
+        return f"{exc.strerror}: {exc.filename}"
+    if "httpx" in sys.modules:
+        import httpx
+
+        if isinstance(exc, httpx.ConnectError):
+            return f"cannot reach the service at {url} (is `loopnet serve` running?): {exc}"
+        if isinstance(exc, httpx.TransportError):
+            return f"the service at {url} did not answer properly: {exc}"
+    from service.errors import LoopNetError
+
+    if isinstance(exc, LoopNetError):
+        return str(exc)
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -212,6 +243,8 @@ def _fail(response) -> int:  # type: ignore[no-untyped-def]
         detail = response.json().get("detail", response.text)
     except ValueError:
         detail = response.text
+    if response.status_code == 401:
+        detail = f"{detail} (set LOOPNET_API_KEY to a key; `loopnet keys create` makes one)"
     print(f"error {response.status_code}: {detail}", file=sys.stderr)
     return 1
 

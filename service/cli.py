@@ -172,6 +172,10 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    # their INFO lines (faiss's loader, each temporary atlas's migrations) would break the bars
+    for chatty in ("faiss", "alembic"):
+        logging.getLogger(chatty).setLevel(logging.WARNING)
+    from service.evaluation.datasets import DatasetError
     from service.evaluation.runner import EvalConfig, command_line, run_evaluation
 
     config = EvalConfig(
@@ -200,7 +204,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         query_stride=args.query_stride,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
-    result = run_evaluation(config)
+    try:
+        result = run_evaluation(config)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print((args.out / "report.md").read_text())
     print(f"report written to {args.out}/report.json, report.md and PNG plots")
     return 0 if result.methods else 1

@@ -337,11 +337,9 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     first_keypoints: KeypointCache | None = None
     retraining: list[RetrainingRow] = []
 
-    def checkpoint(next_step: str) -> None:
-        """Write the rows done so far: a run stopped later keeps them."""
-        if first_pass is None:
-            return
-        report = _report(
+    def report_so_far(partial: str | None) -> dict[str, Any]:
+        assert first_pass is not None
+        return _report(
             config,
             dataset,
             submap_note,
@@ -351,9 +349,15 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             skipped,
             retraining,
             unreadable,
-            f"stopped before {next_step}",
+            partial,
         )
-        _write_partial(output, report, methods + global_only)
+
+    def checkpoint(next_step: str) -> None:
+        """Write the rows done so far (no plots): a run stopped later keeps them."""
+        if first_pass is not None:
+            report = report_so_far(f"stopped before {next_step}")
+            reporting.write_json(report, output / "report.json")
+            reporting.write_markdown(report, methods + global_only, output / "report.md")
 
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
@@ -433,9 +437,8 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         stages[method.label] = baseline_stages
         checkpoint("the remaining baselines and the plots")
 
-    report = _final_report(
-        config, dataset, submap_note, first_pass, methods, stages, skipped, retraining, unreadable
-    )
+    report = report_so_far(None)
+    _write_final(config, dataset, methods, report)
     return EvalResult(report, methods, retraining)
 
 
@@ -510,36 +513,11 @@ def _report(
     return report
 
 
-def _write_partial(output: Path, report: dict[str, Any], methods: list[MethodResult]) -> None:
-    """Write report.json and report.md now (no plots), so a stopped run keeps its rows."""
-    reporting.write_json(report, output / "report.json")
-    reporting.write_markdown(report, methods, output / "report.md")
-
-
-def _final_report(
-    config: EvalConfig,
-    dataset: Dataset,
-    submap_note: str,
-    first_pass: PassResult,
-    methods: list[MethodResult],
-    stages: dict[str, dict[str, dict[str, float]]],
-    skipped: dict[str, str],
-    retraining: list[RetrainingRow],
-    unreadable: dict[Path, str],
-) -> dict[str, Any]:
+def _write_final(
+    config: EvalConfig, dataset: Dataset, methods: list[MethodResult], report: dict[str, Any]
+) -> None:
+    """The plots, then report.json and report.md in full."""
     output = Path(config.output)
-    report = _report(
-        config,
-        dataset,
-        submap_note,
-        first_pass,
-        methods,
-        stages,
-        skipped,
-        retraining,
-        unreadable,
-        None,
-    )
     tolerance_text = report["dataset"]["tolerance_text"]
     title = f"{dataset.name}: loop-closure precision-recall ({tolerance_text})"
     reporting.plot_pr_curves(methods, title, output / reporting.PR_PLOT)
@@ -548,7 +526,6 @@ def _final_report(
     )
     reporting.write_json(report, output / "report.json")
     reporting.write_markdown(report, methods, output / "report.md")
-    return report
 
 
 def command_line(argv: Sequence[str]) -> str:

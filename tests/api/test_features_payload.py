@@ -16,6 +16,7 @@ from service.ml.features import FrameFeatures
 from service.ml.images import decode_image
 from tests.api.helpers import add_frame, create_atlas, stored_state
 from tests.conftest import gardens_point_day_night
+from tests.reliability.hostile import renamed_member
 
 
 def features_of(pipeline, image: bytes) -> FrameFeatures:  # type: ignore[no-untyped-def]
@@ -87,19 +88,6 @@ def _rewrite(payload: bytes, **changes: np.ndarray | None) -> bytes:
     return buffer.getvalue()
 
 
-def _renamed(payload: bytes, old: str, new: str) -> bytes:
-    """The payload with one zip member renamed."""
-    buffer = io.BytesIO()
-    with (
-        zipfile.ZipFile(buffer, "w") as archive,
-        zipfile.ZipFile(io.BytesIO(payload)) as original,
-    ):
-        for info in original.infolist():
-            name = new if info.filename == old else info.filename
-            archive.writestr(name, original.read(info))
-    return buffer.getvalue()
-
-
 def _zip_bomb(payload: bytes) -> bytes:
     buffer = io.BytesIO()
     with (
@@ -165,7 +153,7 @@ MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] 
         ),
         "keypoints must be N x 2",
     ),
-    "member without .npy": (lambda p, s, f: _renamed(p, "scores.npy", "scores"), "exactly"),
+    "member without .npy": (lambda p, s, f: renamed_member(p, "scores.npy", "scores"), "exactly"),
     "image size": (lambda p, s, f: _rewrite(p, image_size=np.array([0, 10])), "image_size"),
     "zip bomb": (lambda p, s, f: _zip_bomb(p), "inflates to"),
 }

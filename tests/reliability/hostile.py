@@ -53,7 +53,8 @@ def _savez(arrays: dict[str, np.ndarray]) -> bytes:
     return buffer.getvalue()
 
 
-def _renamed(payload: bytes, old: str, new: str) -> bytes:
+def renamed_member(payload: bytes, old: str, new: str) -> bytes:
+    """The ``.npz`` payload with one zip member renamed."""
     buffer = io.BytesIO()
     with (
         zipfile.ZipFile(buffer, "w") as archive,
@@ -73,7 +74,9 @@ def feature_payloads(draw: st.DrawFn, valid: bytes) -> bytes:
         return valid
     name = draw(st.sampled_from(sorted(arrays)))
     if how == "rename":
-        return _renamed(valid, f"{name}.npy", draw(st.sampled_from([name, name.upper(), "x.npy"])))
+        return renamed_member(
+            valid, f"{name}.npy", draw(st.sampled_from([name, name.upper(), "x.npy"]))
+        )
     array = arrays[name]
     if array.ndim == 0:  # the signature: make it 1-d or a number
         arrays[name] = array.reshape(1) if how != "dtype" else np.array(0)

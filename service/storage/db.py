@@ -27,15 +27,24 @@ def make_engine(url: str) -> Engine:
 
 
 def _refuse_nul_characters(
-    _conn: Any, _cursor: Any, _statement: str, parameters: Any, _context: Any, many: bool
+    _conn: Any, _cursor: Any, _statement: str, parameters: Any, _context: Any, _many: bool
 ) -> None:
-    """Refuse text holding NUL characters on every database alike: PostgreSQL cannot store them
-    (its driver raises), SQLite would store and later cut them."""
-    rows = parameters if many else [parameters]
-    for row in rows:
-        values = row.values() if isinstance(row, dict) else row or ()
-        if any(isinstance(value, str) and "\x00" in value for value in values):
-            raise InvalidInput("text fields may not contain NUL characters")
+    """Refuse text holding NUL characters: PostgreSQL cannot store them (its driver raises);
+    refusing them on SQLite too makes both databases answer alike (422)."""
+    if _holds_nul(parameters):
+        raise InvalidInput("text fields may not contain NUL characters")
+
+
+def _holds_nul(parameters: Any) -> bool:
+    """Whether a statement's parameters (a value, a row, or rows: dicts, tuples or lists) hold
+    a string with a NUL character."""
+    if isinstance(parameters, str):
+        return "\x00" in parameters
+    if isinstance(parameters, dict):
+        return any(_holds_nul(value) for value in parameters.values())
+    if isinstance(parameters, list | tuple):
+        return any(_holds_nul(value) for value in parameters)
+    return False
 
 
 def _make_engine(url: str) -> Engine:

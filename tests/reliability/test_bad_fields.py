@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.auth import Role, create_key
+from service.fleet.keys import Role, create_key
 from service.storage.db import transaction
 from tests.api.helpers import create_atlas, stored_state
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready

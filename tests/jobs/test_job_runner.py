@@ -9,7 +9,7 @@ from pathlib import Path
 
 from fastapi.testclient import TestClient
 
-from service.retraining import JobRunner
+from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
@@ -61,7 +61,7 @@ def test_failed_job_leaves_the_active_version(client: TestClient, settings) -> N
 
 
 def test_cancelling_a_running_job(client: TestClient, settings, caplog) -> None:  # type: ignore[no-untyped-def]
-    caplog.set_level(logging.INFO, logger="service.retraining")
+    caplog.set_level(logging.INFO, logger="service.jobs.retraining")
     atlas_with_two_submaps(client)
     runner, job_id = submit(client, {"epochs": 100_000, "patience": 100_000, "embed_dim": 8})
     thread = threading.Thread(target=runner.run, args=(job_id,))
@@ -109,7 +109,7 @@ def test_job_api_validation(client: TestClient) -> None:
 def test_the_worker_logs_a_job_cancelled_before_it_ran_as_not_run(
     client: TestClient, settings, caplog
 ) -> None:  # type: ignore[no-untyped-def]
-    from workers.queue import Queue
+    from service.jobs.queue import Queue
 
     caplog.set_level(logging.INFO)
     atlas_with_two_submaps(client)

@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from service.cli_atlas import add_parsers as add_atlas_parsers
 from service.cli_eval import add_parsers as add_eval_parsers
 from service.cli_fleet import add_parsers as add_fleet_parsers
 
@@ -100,6 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_eval_parsers(commands)
     add_fleet_parsers(commands)
+    add_atlas_parsers(commands)
 
     seed = commands.add_parser("weights", help="pretrained weights in the torch hub cache")
     seed_commands = seed.add_subparsers(dest="weights_command", required=True)

@@ -122,7 +122,7 @@ def cmd_snapshot_export(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_restore(args: argparse.Namespace) -> int:
-    from service.fleet.snapshots import restore_atlas
+    from service.fleet.snapshot_restore import restore_atlas
 
     def action() -> None:
         settings, sessions = _sessions()

@@ -8,7 +8,6 @@ loaded state of every atlas; the work itself lives in :mod:`service.atlas.state`
 
 from __future__ import annotations
 
-import shutil
 from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -18,6 +17,7 @@ from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameIngest
 from service.atlas.names import validate_name
 from service.atlas.query import AtlasQueries
+from service.atlas.reads import unavailable_atlases
 from service.atlas.results import QueryResult
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification, verification_config
@@ -53,6 +53,7 @@ class AtlasService:
         self.queries = AtlasQueries(settings, sessions, self.states, self.frames, self.verification)
         # what the follower thread, the tests and the CLI reach through the facade
         self._loaded = self.states.loaded_states
+        self.broken = self.states.broken
         self.loaded = self.states.loaded
         self.refresh = self.states.refresh
         self.follow = self.states.follow
@@ -100,9 +101,11 @@ class AtlasService:
             atlas_id = atlas.id
             session.delete(atlas)
         self.states.forget(atlas_id)
-        for path in self.settings.index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
-            path.unlink(missing_ok=True)
-        shutil.rmtree(self.settings.models_dir / f"atlas-{atlas_id}", ignore_errors=True)
+        models_store.remove_atlas_files(self.settings.index_dir, self.settings.models_dir, atlas_id)
+
+    def unavailable_atlases(self) -> dict[str, str]:
+        """Atlas name -> why it cannot be loaded (served with 503 while the others serve)."""
+        return unavailable_atlases(self.sessions, self.states.broken.reasons())
 
     def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
         """Make a model version the active one; this process serves it at once, the others

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -65,3 +66,10 @@ def load_heads(version: ModelVersion, models_dir: Path) -> LoopNetHeads:
     if not path.is_absolute():
         path = models_dir / path
     return LoopNetHeads.load(path)
+
+
+def remove_atlas_files(index_dir: Path, models_dir: Path, atlas_id: int) -> None:
+    """Delete every index file and weights file of an atlas (its rows are deleted apart)."""
+    for path in index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
+        path.unlink(missing_ok=True)
+    shutil.rmtree(models_dir / f"atlas-{atlas_id}", ignore_errors=True)

@@ -43,6 +43,16 @@ def atlas_summaries(sessions: Sessions, visible: Callable[[str], bool]) -> list[
         return [summary_of(session, a) for a in repo.list_atlases(session) if visible(a.name)]
 
 
+def unavailable_atlases(sessions: Sessions, reasons: dict[int, str]) -> dict[str, str]:
+    """Atlas name -> why it cannot be loaded, from ``reasons`` by atlas id (atlases deleted
+    since are left out)."""
+    if not reasons:
+        return {}
+    with sessions() as session:
+        names = {a.id: a.name for a in repo.list_atlases(session)}
+    return {names[i]: reason for i, reason in reasons.items() if i in names}
+
+
 def feature_signature(sessions: Sessions, atlas: str) -> dict[str, Any]:
     with sessions() as session:
         return repo.get_atlas(session, name=atlas).feature_signature

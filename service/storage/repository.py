@@ -37,7 +37,10 @@ def get_atlas(session: Session, *, name: str) -> Atlas:
 
 
 def list_atlases(session: Session) -> list[Atlas]:
-    return list(session.scalars(select(Atlas).order_by(Atlas.name)))
+    """Every atlas but those a snapshot restore is still writing (named with a leading '.',
+    which atlas names cannot start with)."""
+    query = select(Atlas).where(~Atlas.name.startswith(".")).order_by(Atlas.name)
+    return list(session.scalars(query))
 
 
 def count_frames(session: Session, *, atlas_id: int, submap_id: int | None = None) -> int:

@@ -15,7 +15,8 @@ from service.api.auth import AdminAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import AtlasOut, ErrorOut
 from service.atlas import reads
-from service.fleet.snapshots import export_atlas, restore_atlas
+from service.fleet.snapshot_restore import restore_atlas
+from service.fleet.snapshots import export_atlas
 
 router = APIRouter(tags=["snapshots"])
 ERRORS: dict[int | str, dict[str, Any]] = {

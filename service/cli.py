@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from service.cli_atlas import add_parsers as add_atlas_parsers
+from service.cli_eval import add_parsers as add_eval_parsers
 from service.cli_fleet import add_parsers as add_fleet_parsers
 
 if TYPE_CHECKING:
@@ -30,7 +31,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    return int(args.func(args) or 0)
+    # one INFO line per HTTP request would break the progress bars of ingest and eval
+    for chatty in ("httpx", "httpcore"):
+        logging.getLogger(chatty).setLevel(logging.WARNING)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        message = one_line_error(exc, getattr(args, "url", None))
+        if message is None:
+            raise
+        print(f"error: {message}", file=sys.stderr)
+        return 1
+
+
+def one_line_error(exc: Exception, url: str | None) -> str | None:
+    """What the user can act on, for the errors a command line meets (None: a real bug)."""
+    if isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
+        return f"{exc.strerror}: {exc.filename}"
+    if "httpx" in sys.modules:
+        import httpx
+
+        if isinstance(exc, httpx.ConnectError):
+            return f"cannot reach the service at {url} (is `loopnet serve` running?): {exc}"
+        if isinstance(exc, httpx.TransportError):
+            return f"the service at {url} did not answer properly: {exc}"
+    from service.errors import LoopNetError
+
+    if isinstance(exc, LoopNetError):
+        return str(exc)
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     reindex.add_argument("atlases", nargs="*", help="atlas names (default: all)")
     reindex.set_defaults(func=cmd_reindex)
 
-    add_eval_parser(commands)
+    add_eval_parsers(commands)
     add_fleet_parsers(commands)
     add_atlas_parsers(commands)
 
@@ -87,96 +119,6 @@ def build_parser() -> argparse.ArgumentParser:
     upgrade.add_argument("--revision", default="head")
     upgrade.set_defaults(func=cmd_db_upgrade)
     return parser
-
-
-def _csv_list(kind: type, text: str) -> tuple:  # type: ignore[type-arg]
-    return tuple(kind(v) for v in text.split(",") if v.strip())
-
-
-def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    from service.evaluation.datasets import LAYOUTS
-
-    ev = commands.add_parser(
-        "eval",
-        help="evaluate LoopNet, its ablations and classical baselines on a dataset folder",
-        description=(
-            "Runs every method on one dataset through the service's own code path (temporary "
-            "atlas) and writes report.json, report.md and PNG plots. Layouts: traversals (two "
-            "frame-aligned folders), vpr-bench (query/, ref/, ground_truth_new.npy), loopdb "
-            "(datastream_1/2/data_descriptor.csv), csv (dataset.csv), places (<place>/<image>)."
-        ),
-    )
-    ev.add_argument("dataset", type=Path, help="the dataset folder")
-    ev.add_argument("--out", type=Path, required=True, help="report folder (created)")
-    ev.add_argument("--layout", default="auto", choices=("auto", *LAYOUTS))
-    ev.add_argument("--tolerance", type=int, help="frame tolerance (default 1)")
-    ev.add_argument("--distance", type=float, default=25.0, help="metres, for CSV positions")
-    ev.add_argument("--reference", help="traversals: the map's folder")
-    ev.add_argument("--query", help="traversals: the queries' folder")
-    ev.add_argument("--submap-size", type=int, default=5, help="consecutive frames per submap")
-    ev.add_argument("--preset", default="default", help="model preset (default, fast, paper)")
-    ev.add_argument("--long-side", type=int, help="local extractors' working long side")
-    ev.add_argument("--max-keypoints", type=int, help="keypoints per frame")
-    ev.add_argument("--backbone", help="global backbone (mobilenetv2, resnet18)")
-    ev.add_argument("--extractors", default="disk,xfeat", help="comma-separated, first = LoopNet")
-    ev.add_argument("--alphas", default="0,0.3,0.5,0.7,1", help="ablation fusion weights")
-    ev.add_argument("--baselines", default="bow-orb,seqslam-sad", help="comma-separated, or ''")
-    ev.add_argument("--limit", type=int, help="only the first N reference frames (a quick slice)")
-    ev.add_argument("--cache-dir", type=Path, help="feature cache (default OUT/cache)")
-    ev.add_argument("--examples", type=int, default=6, help="example queries in the strip")
-    ev.add_argument(
-        "--retrain-shots",
-        default="1,3,5",
-        help="K values (shots per submap) of the retrained rows, comma-separated; '' for none",
-    )
-    ev.add_argument(
-        "--retrain-protocols",
-        default="map,revisit",
-        help="map (reference shots only) and/or revisit (the paper's: also query-condition shots)",
-    )
-    ev.add_argument(
-        "--verify",
-        default="",
-        help="comma-separated matchers (mnn, lightglue): add geometric-verification rows",
-    )
-    ev.add_argument("--verify-top", type=int, default=5, help="candidates verified per query")
-    ev.add_argument("--query-stride", type=int, default=1, help="keep every n-th query only")
-    ev.set_defaults(func=cmd_eval)
-
-
-def cmd_eval(args: argparse.Namespace) -> int:
-    from service.evaluation.runner import EvalConfig, command_line, run_evaluation
-
-    config = EvalConfig(
-        dataset=args.dataset,
-        output=args.out,
-        layout=args.layout,
-        tolerance=args.tolerance,
-        distance=args.distance,
-        reference=args.reference,
-        query=args.query,
-        submap_size=args.submap_size,
-        preset=args.preset,
-        long_side=args.long_side,
-        max_keypoints=args.max_keypoints,
-        backbone=args.backbone,
-        extractors=_csv_list(str, args.extractors),
-        alphas=_csv_list(float, args.alphas),
-        baselines=_csv_list(str, args.baselines),
-        limit=args.limit,
-        cache_dir=args.cache_dir,
-        examples=args.examples,
-        retrain_shots=_csv_list(int, args.retrain_shots),
-        retrain_protocols=_csv_list(str, args.retrain_protocols),
-        verify=_csv_list(str, args.verify),
-        verify_top=args.verify_top,
-        query_stride=args.query_stride,
-        command=command_line(sys.argv[1:] if args.argv is None else args.argv),
-    )
-    result = run_evaluation(config)
-    print((args.out / "report.md").read_text())
-    print(f"report written to {args.out}/report.json, report.md and PNG plots")
-    return 0 if result.methods else 1
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -211,7 +153,10 @@ def _client(url: str) -> LoopNetClient:
 
 
 def _fail(error: LoopNetError) -> int:
-    print(f"error {error.status}: {error.detail}", file=sys.stderr)
+    detail = error.detail
+    if error.status == 401:
+        detail = f"{detail} (set LOOPNET_API_KEY to a key; `loopnet keys create` makes one)"
+    print(f"error {error.status}: {detail}", file=sys.stderr)
     return 1
 
 

@@ -61,7 +61,8 @@ class Runtime:
 
     def _load(self) -> None:
         try:
-            preset = self.settings.preset()
+            # an injected pipeline (tests, `loopnet eval`) may run other settings than the preset
+            preset = self._pipeline.preset if self._pipeline else self.settings.preset()
             log.info("loading model preset %r (%s, %s)", preset.name, preset.local, preset.backbone)
             assert self.sessions is not None
             pipeline = self._pipeline or FeaturePipeline(preset)

@@ -10,6 +10,7 @@ from fastapi import FastAPI
 
 from service import __version__
 from service.api import metrics
+from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
 from service.api.guard import RequestGuard
 from service.api.request_log import RequestLogMiddleware
@@ -68,10 +69,13 @@ def create_app(
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # served from the package's files, below: no CDN
+        redoc_url=None,
     )
     app.state.runtime = runtime
     install_error_handlers(app)
     app.add_middleware(RequestGuard, settings=runtime.settings)
+    install_offline_docs(app)
     routers = (
         health,
         atlases,

@@ -1,11 +1,17 @@
-"""Domain errors -> HTTP status codes, in one place; messages never show server paths."""
+"""Domain errors -> HTTP status codes, in one place; every error answer has the documented
+shape ``{"detail": str, "error": str}``, FastAPI's and Starlette's own included, and messages
+never show server paths."""
 
 from __future__ import annotations
 
+import logging
 import re
+from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
 
 from service.errors import (
     Conflict,
@@ -22,6 +28,20 @@ from service.errors import (
     Unauthorized,
     WeightsUnavailable,
 )
+
+log = logging.getLogger(__name__)
+
+# Starlette's HTTP errors by status, named like the domain errors
+HTTP_ERROR_NAMES = {
+    400: "BadRequest",
+    401: "Unauthorized",
+    403: "Forbidden",
+    404: "NotFound",
+    405: "MethodNotAllowed",
+    413: "TooLarge",
+    415: "UnsupportedMediaType",
+    422: "InvalidInput",
+}
 
 STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (ImageTooLarge, 413),
@@ -79,3 +99,41 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(LoopNetError)
     async def _loopnet_error(_request: Request, exc: LoopNetError) -> JSONResponse:
         return error_response(exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [_plain(error) for error in exc.errors()]
+        return JSONResponse(
+            {"detail": validation_summary(errors), "error": "InvalidInput", "errors": errors},
+            status_code=422,
+        )
+
+    @app.exception_handler(HTTPException)
+    async def _http_error(_request: Request, exc: HTTPException) -> JSONResponse:
+        name = HTTP_ERROR_NAMES.get(exc.status_code, "HTTPError")
+        return JSONResponse(
+            {"detail": str(exc.detail), "error": name},
+            status_code=exc.status_code,
+            headers=getattr(exc, "headers", None),
+        )
+
+    @app.exception_handler(Exception)
+    async def _server_error(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return JSONResponse(
+            {"detail": "internal server error; the server log has the cause", "error": "Internal"},
+            status_code=500,
+        )
+
+
+def validation_summary(errors: list[dict[str, Any]]) -> str:
+    """FastAPI's list of validation errors in one line: ``body.name: String should ...``."""
+    return "; ".join(
+        f"{'.'.join(str(part) for part in error.get('loc', ())) or 'request'}: {error.get('msg')}"
+        for error in errors
+    )
+
+
+def _plain(error: dict[str, Any]) -> dict[str, Any]:
+    """A validation error without its ``ctx``/``url`` (may hold exception objects)."""
+    return {key: error[key] for key in ("type", "loc", "msg") if key in error}

@@ -29,7 +29,7 @@ from service.fleet.keys import Authenticator
 OPEN_PATHS = frozenset(
     {"/", "/v1/health", "/v1/ready", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}
 )
-OPEN_PREFIXES = ("/console/",)  # the console's static files: the page itself asks for a key
+OPEN_PREFIXES = ("/console/", "/docs-static/")  # static files: the console asks for a key itself
 
 
 def is_open(settings: Settings, path: str) -> bool:

@@ -22,12 +22,27 @@ log = logging.getLogger(__name__)
 TASK_NAME = "loopnet.run_job"
 
 
+class _NoExecutedLines(logging.Filter):
+    """Drop Huey's "Executing"/"executed in" lines: the job runner logs each job's id, atlas and
+    outcome, and Huey would call a cancelled or skipped job "executed"."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (
+            isinstance(record.msg, str)
+            and (record.msg.startswith("Executing ") or " executed in " in record.msg)
+        )
+
+
+_HUEY_LOG_FILTER = _NoExecutedLines()
+
+
 class Queue:
     """A Huey instance plus LoopNet's one task, ``run_job(job_id)``."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.huey: Huey = make_huey(settings)
+        logging.getLogger("huey").addFilter(_HUEY_LOG_FILTER)  # the same filter once only
         self._runner: Any = None
         task = self.huey.task(name=TASK_NAME)(self._run_job)
         self.run_job: Callable[[int], Any] = task

@@ -17,11 +17,40 @@ from typing import Any
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.errors import InvalidInput
+
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 
 
 def make_engine(url: str) -> Engine:
     """An engine for ``url``; SQLite files get WAL, foreign keys and a busy timeout."""
+    engine = _make_engine(url)
+    event.listen(engine, "before_cursor_execute", _refuse_nul_characters)
+    return engine
+
+
+def _refuse_nul_characters(
+    _conn: Any, _cursor: Any, _statement: str, parameters: Any, _context: Any, _many: bool
+) -> None:
+    """Refuse text holding NUL characters: PostgreSQL cannot store them (its driver raises);
+    refusing them on SQLite too makes both databases answer alike (422)."""
+    if _holds_nul(parameters):
+        raise InvalidInput("text fields may not contain NUL characters")
+
+
+def _holds_nul(parameters: Any) -> bool:
+    """Whether a statement's parameters (a value, a row, or rows: dicts, tuples or lists) hold
+    a string with a NUL character."""
+    if isinstance(parameters, str):
+        return "\x00" in parameters
+    if isinstance(parameters, dict):
+        return any(_holds_nul(value) for value in parameters.values())
+    if isinstance(parameters, list | tuple):
+        return any(_holds_nul(value) for value in parameters)
+    return False
+
+
+def _make_engine(url: str) -> Engine:
     if url.startswith("sqlite"):
         prepare_sqlite_file(url)
         engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.ml.images import ImageLimits
-from service.ml.presets import ModelPreset, resolve_preset
+from service.fleet.snapshot_archive import ArchiveLimits
+
+if TYPE_CHECKING:  # the ML modules import torch; the keys and snapshot commands must not
+    from service.ml.images import ImageLimits
+    from service.ml.presets import ModelPreset
 
 
 class Settings(BaseSettings):
@@ -44,7 +47,7 @@ class Settings(BaseSettings):
         None,
         ge=1,
         description="RANSAC inliers at or above which a candidate is verified; default: the "
-        "matcher's own (service.verification.DEFAULT_MIN_INLIERS).",
+        "matcher's own (service.ml.verification.DEFAULT_MIN_INLIERS).",
     )
     verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="MNN matcher's ratio test.")
     ransac_threshold_px: float = Field(
@@ -58,6 +61,9 @@ class Settings(BaseSettings):
     )
     max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
     max_image_pixels: int = Field(40_000_000, ge=1024)
+    max_snapshot_bytes: int = Field(
+        4 * 1024**3, ge=1024, description="Largest snapshot archive POST /v1/snapshots accepts."
+    )
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
     model_poll_seconds: float = Field(
         1.0, ge=0.0, description="How often a process checks for a newly activated model version."
@@ -116,6 +122,24 @@ class Settings(BaseSettings):
         "auto",
         description="API keys: 'auto' = required once a key exists, 'required' always, 'off' never.",
     )
+    snapshot_max_member_bytes: int = Field(
+        1024**3, ge=1024, description="Largest member (uncompressed) a snapshot restore reads."
+    )
+    snapshot_max_total_bytes: int = Field(
+        2 * 1024**3, ge=1024, description="Largest sum of members a snapshot restore reads."
+    )
+    log_format: Literal["json", "text"] = Field(
+        "json", description="Per-request log lines: one JSON object each, or plain text."
+    )
+    metrics_public: bool = Field(
+        True, description="Serve GET /metrics without a key (false: an operator key)."
+    )
+    auth_failure_limit: int = Field(
+        20, ge=1, description="Failed authentications one client address may make per window."
+    )
+    auth_failure_window_seconds: float = Field(
+        60.0, gt=0, description="The window of auth_failure_limit; beyond it, 429."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 
@@ -147,13 +171,21 @@ class Settings(BaseSettings):
 
     @property
     def image_limits(self) -> ImageLimits:
+        from service.ml.images import ImageLimits
+
         return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)
+
+    @property
+    def snapshot_limits(self) -> ArchiveLimits:
+        return ArchiveLimits(self.snapshot_max_member_bytes, self.snapshot_max_total_bytes)
 
     def pipeline_options(self) -> tuple[str, float, int]:
         """FeaturePipeline's precision, batch_window_ms and max_batch."""
         return self.precision, self.batch_window_ms, self.max_batch
 
     def preset(self) -> ModelPreset:
+        from service.ml.presets import resolve_preset
+
         return resolve_preset(
             self.model_preset,
             backbone=self.backbone,

@@ -75,6 +75,8 @@ def decode_features(
         )
     width, height = _image_size(arrays["image_size"], max_image_pixels)
     keypoints = _float_array("keypoints", arrays["keypoints"], 2)
+    if keypoints.shape[1] != 2:
+        raise InvalidInput(f"keypoints must be N x 2 (x, y), got {keypoints.shape}")
     count = len(keypoints)
     if count > max_keypoints:
         raise InvalidInput(f"{count} keypoints sent; the atlas keeps at most {max_keypoints}")
@@ -134,8 +136,7 @@ def _read_archive(data: bytes, limits: dict[str, int]) -> dict[str, np.ndarray]:
         members = {info.filename: info for info in archive.infolist()}
     except (zipfile.BadZipFile, ValueError) as exc:
         raise InvalidInput(f"the features payload is not an .npz archive: {exc}") from exc
-    names = {name.removesuffix(".npy") for name in members}
-    if names != set(ARRAYS) or len(members) != len(ARRAYS):
+    if set(members) != {f"{name}.npy" for name in ARRAYS}:
         raise InvalidInput(
             f"the features payload must hold exactly the arrays {list(ARRAYS)}; "
             f"got {sorted(members)}"

@@ -1,6 +1,6 @@
 """Geometric verification in the evaluation harness: the service's retrieval ranking, its best
-candidates verified by the service's own :class:`~service.verification.Verifier`, re-ranked by
-:func:`~service.verification.rerank`, and scored as a loop-closure decision.
+candidates verified by the service's own :class:`~service.ml.verification.Verifier`, re-ranked by
+:func:`~service.ml.verification.rerank`, and scored as a loop-closure decision.
 
 Keypoints are extracted once per image by the pass's local extractor (only for the queries and
 the references that appear among their verified candidates) and cached beside the feature
@@ -31,7 +31,7 @@ from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractor
-from service.verification import (
+from service.ml.verification import (
     VerificationConfig,
     Verifier,
     View,
@@ -52,9 +52,16 @@ def subsample_queries(dataset: Dataset, stride: int) -> Dataset:
         queries=kept,
         excluded=[
             *dataset.excluded,
-            f"query subsample: every {stride}th query ({len(kept)} of {len(dataset.queries)})",
+            f"query subsample: every {ordinal(stride)} query ({len(kept)} of "
+            f"{len(dataset.queries)})",
         ],
     )
+
+
+def ordinal(n: int) -> str:
+    """``1st``, ``2nd``, ``3rd``, ``4th``, ``11th``, ``12th``, ``13th``, ``21st`` ..."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
 
 
 class KeypointCache:

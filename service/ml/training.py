@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
 
 TRAINABLE_PARTS = ("fusion", "similarity", "classifier")
+MAX_SEED = 2**64 - 1
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,18 @@ class TrainingConfig:
             raise ValueError("loss weights must be >= 0")
         if self.classification_weight == 0 and self.contrastive_weight == 0:
             raise ValueError("at least one loss weight must be positive")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed must be in 0..{MAX_SEED} (64 bits, what torch accepts)")
+
+    def check_fits(self, base: HeadsConfig) -> None:
+        """Refuse an ``embed_dim`` the atlas's features cannot fill: the fusion starts from a
+        PCA of the fused input, which has only ``local_dim + global_dim`` directions."""
+        fused_input = base.local_dim + base.global_dim
+        if self.embed_dim > fused_input:
+            raise ValueError(
+                f"embed_dim {self.embed_dim} exceeds the atlas's fused input size {fused_input} "
+                f"({base.local_dim} local + {base.global_dim} global)"
+            )
 
 
 @dataclass
@@ -97,7 +110,7 @@ def split_shots(submaps: np.ndarray, shots: int) -> tuple[np.ndarray, np.ndarray
     Frames are taken in stored order (ingest order), so the shots cover each submap's span. A
     submap of two or more frames always keeps one out of the shots: without any validation
     frame, early stopping and best-epoch keeping have nothing to judge by, and a run over all
-    epochs overfits the shots (measured: Recall@1 0.825 -> 0.620 on Gardens Point).
+    epochs overfits the shots (benchmarks/RESULTS.md has the measurement).
     """
     train: list[int] = []
     for submap in np.unique(submaps):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from datetime import UTC, datetime
 from typing import Any
 
@@ -160,6 +161,16 @@ class ModelVersion(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
+class JobStatus(enum.StrEnum):
+    """Where a job stands; the row stores the value."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
 class Job(Base):
     """A queued piece of work (retraining) as the API reports it; the queue holds only its id."""
 
@@ -170,7 +181,7 @@ class Job(Base):
     atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
     kind: Mapped[str] = mapped_column(String(32))
     # queued -> running -> succeeded | failed | cancelled (or queued -> cancelled)
-    status: Mapped[str] = mapped_column(String(16), default="queued")
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED.value)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     message: Mapped[str] = mapped_column(String(500), default="")
     params: Mapped[dict[str, Any]]
@@ -231,3 +242,29 @@ class LoopClosure(Base):
     model_version: Mapped[int] = mapped_column(Integer)
     source: Mapped[str] = mapped_column(String(16))  # query | observe
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # what verification found (None when not verified): RANSAC inliers and the relative pose
+    # {"rotation": [w, x, y, z], "translation": [x, y, z]} of the query camera to the frame's
+    inliers: Mapped[int | None] = mapped_column(Integer)
+    relative_pose: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+
+
+class FrameThumbnail(Base):
+    """A small JPEG of a frame (see service/ml/thumbnails.py): the only image data kept."""
+
+    __tablename__ = "frame_thumbnails"
+
+    frame_id: Mapped[int] = mapped_column(
+        ForeignKey("frames.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class LoopClosureThumbnail(Base):
+    """The thumbnail of the query image that closed a loop (a query keeps no frame)."""
+
+    __tablename__ = "loop_closure_thumbnails"
+
+    loop_closure_id: Mapped[int] = mapped_column(
+        ForeignKey("loop_closures.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)

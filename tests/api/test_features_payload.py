@@ -16,6 +16,7 @@ from service.ml.features import FrameFeatures
 from service.ml.images import decode_image
 from tests.api.helpers import add_frame, create_atlas, stored_state
 from tests.conftest import gardens_point_day_night
+from tests.reliability.hostile import renamed_member
 
 
 def features_of(pipeline, image: bytes) -> FrameFeatures:  # type: ignore[no-untyped-def]
@@ -146,6 +147,13 @@ MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] 
         lambda p, s, f: _rewrite(p, scores=np.array([{"a": 1}], dtype=object)),
         "unreadable",
     ),
+    "keypoints with three columns": (
+        lambda p, s, f: _rewrite(
+            p, keypoints=np.concatenate([f.local.keypoints, f.local.keypoints[:, :1]], axis=1)
+        ),
+        "keypoints must be N x 2",
+    ),
+    "member without .npy": (lambda p, s, f: renamed_member(p, "scores.npy", "scores"), "exactly"),
     "image size": (lambda p, s, f: _rewrite(p, image_size=np.array([0, 10])), "image_size"),
     "zip bomb": (lambda p, s, f: _zip_bomb(p), "inflates to"),
 }

@@ -14,7 +14,8 @@ fills an atlas over HTTP with the Gardens Point frames, then times single querie
     python benchmarks/http_latency.py --presets fast default
     LOOPNET_BACKBONE=mobilenetv2 python benchmarks/http_latency.py --presets paper
 
-The weights must be in $TORCH_HOME/hub/checkpoints (``loopnet weights seed ../shared/weights``).
+The weights must be in $TORCH_HOME/hub/checkpoints (``loopnet weights seed ../shared/weights``);
+the frames are read from ``../shared/data`` beside the repository (``LOOPNET_SHARED_DIR``).
 The server runs with ``--threads`` torch threads (LOOPNET_TORCH_THREADS).
 """
 
@@ -41,7 +42,10 @@ from service.ml.local_extractors import LocalExtractorConfig
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+# the frames live in ../shared beside the repository, like the test suite's (override with
+# LOOPNET_SHARED_DIR)
+DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", ROOT.parent / "shared")) / "data"
 
 
 def cpu_seconds(pid: int) -> float:

@@ -34,7 +34,8 @@ from service.ml.pipeline import FeaturePipeline
 from service.ml.precision import FastInference, Precision, cpu_has_native_bf16
 from service.ml.presets import resolve_preset
 
-DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", "../shared")) / "data"
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", ROOT.parent / "shared")) / "data"
 
 
 def timed(fn: Callable[[], object], repeats: int) -> dict[str, float]:

@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.api.app import create_app
+from service.fleet.keys import Role, issue
 from service.storage import jobs
 from service.storage.db import transaction
 from tests.api.helpers import add_frame, create_atlas
@@ -122,3 +123,10 @@ def test_metrics_can_require_an_operator_key(tmp_path, pipeline) -> None:  # typ
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         assert client.get("/metrics").status_code == 401
+        sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+        robot = issue(sessions, name="r", role=Role.robot, atlases=[]).token
+        operator = issue(sessions, name="o", role=Role.operator, atlases=[]).token
+        assert client.get("/metrics", headers={"X-API-Key": robot}).status_code == 403
+        answer = client.get("/metrics", headers={"X-API-Key": operator})
+        assert answer.status_code == 200
+        assert "loopnet_ready" in answer.text

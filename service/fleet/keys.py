@@ -210,7 +210,6 @@ class Authenticator:
         if not self.enforced():
             return OPEN
         address = client or "unknown"
-        self.failures.check(address)
         if not token:
             self._failed(address, "no API key")
             raise Unauthorized("an API key is required: send 'Authorization: Bearer <key>'")
@@ -231,6 +230,10 @@ class Authenticator:
             return None
 
     def _failed(self, address: str, reason: str) -> None:
+        """Count a failure; over the limit the address's failures are answered 429 instead of
+        401. A valid key always passes: a fleet behind one address (NAT, a proxy) is not locked
+        out by one misconfigured robot, and 256-bit keys cannot be guessed anyway."""
+        self.failures.check(address)
         self.failures.record(address)
         log.warning("authentication failed from %s: %s", address, reason)
 

@@ -158,15 +158,10 @@ class JobRunner:
                     f"re-embedding: {done}/{len(stored)} frames",
                 )
 
+        # fp32 like ingest, restore and reconcile: a frame's vector must not depend on which path
+        # embedded it (bf16 re-embedding is in the benchmarks, not in the service)
         with self.sessions() as session:
-            add_stored_frames(
-                session,
-                atlas_id,
-                result.heads,
-                index,
-                progress=on_chunk,
-                precision=self.settings.precision,
-            )
+            add_stored_frames(session, atlas_id, result.heads, index, progress=on_chunk)
         reembed_seconds = time.perf_counter() - started
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)
         files.append(index_path)

@@ -207,6 +207,7 @@ def test_loop_closures_graph_and_one_closure_side_by_side(console: Console) -> N
         assert seen.loop_closure and seen.match is not None
         assert seen.match.frame_id == console.frames[observed]
         found = husky2.loop_closures(ATLAS)  # one per verified loop closure, newest first
+        drawn = husky2.loop_closure_matches(ATLAS, found[0].id)
     closed = len(found)
     assert closed >= 2, "husky-2 should recognise at least one of husky-1's places"
     assert found[0].source == "observe"
@@ -227,7 +228,7 @@ def test_loop_closures_graph_and_one_closure_side_by_side(console: Console) -> N
         "document.querySelectorAll('[data-testid=closure-matches] image[data-loaded]').length == 2"
     )
     lines = page.locator("[data-testid=closure-matches] line")
-    assert lines.count() > 0
+    assert lines.count() == len(drawn.pairs) > 0
     summary = page.text_content("[data-testid=match-summary]") or ""
     assert summary.startswith(f"{lines.count()} inliers"), summary
     assert "R q" in (page.text_content("[data-testid=relative-pose]") or "")

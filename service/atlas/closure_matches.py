@@ -65,7 +65,7 @@ def closure_matches(
         found = ingest.checked_atlas(session, atlas)
         row = closure_row(session, found, closure_id)
         if row.query_frame_id is None:
-            raise NotFound(_why_no_frame(closure_id, row.source))
+            raise NotFound(_why_no_frame(found.name, closure_id, row.source))
         query_frame = repo.get_frame(session, atlas=found, frame_id=row.query_frame_id)
         frame = repo.get_frame(session, atlas=found, frame_id=row.frame_id)
         stored = load_local_features(session, [query_frame.id, frame.id])
@@ -95,11 +95,11 @@ def closure_matches(
     )
 
 
-def _why_no_frame(closure_id: int, source: str) -> str:
+def _why_no_frame(atlas: str, closure_id: int, source: str) -> str:
     if source == "query":
         return (
             f"loop closure {closure_id} came from a query, which stores no frame: matches are "
-            "only kept for observed frames (POST /v1/atlases/{atlas}/observe)"
+            f"only kept for observed frames (POST /v1/atlases/{atlas}/observe)"
         )
     return f"the observed frame of loop closure {closure_id} is no longer stored"
 

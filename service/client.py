@@ -37,7 +37,12 @@ from service.api.schemas import (
     ReadyOut,
     SubmapOut,
 )
-from service.api.schemas_browse import CallerOut, LoopClosureDetailOut, RobotOut
+from service.api.schemas_browse import (
+    CallerOut,
+    ClosureMatchesOut,
+    LoopClosureDetailOut,
+    RobotOut,
+)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 RETRY_STATUSES = (429, 503)
@@ -242,6 +247,13 @@ class LoopNetClient:
 
     def loop_closure(self, atlas: str, closure_id: int) -> LoopClosureDetailOut:
         return self._get(LoopClosureDetailOut, f"/atlases/{atlas}/loop-closures/{closure_id}")
+
+    def loop_closure_matches(
+        self, atlas: str, closure_id: int, *, limit: int = 1000
+    ) -> ClosureMatchesOut:
+        """The inlier point pairs of a closure an observation found (404 for a query's)."""
+        path = f"/atlases/{atlas}/loop-closures/{closure_id}/matches"
+        return self._get(ClosureMatchesOut, path, limit=limit)
 
     # ----- jobs and model versions -------------------------------------------------------
 

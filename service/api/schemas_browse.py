@@ -29,6 +29,34 @@ class LoopClosureDetailOut(BaseModel):
     created_at: datetime
     frame: FrameOut = Field(description="The matched frame.")
     query_thumbnail: bool = Field(description="Whether the query image's thumbnail was kept.")
+    query_frame_id: int | None = Field(
+        description="The frame an observation stored (None for a query, which stores none); "
+        "its matches can be drawn."
+    )
+
+
+class MatchedFrameOut(BaseModel):
+    frame_id: int
+    width: int = Field(description="Width of the decoded frame, the points' pixel frame.")
+    height: int
+
+
+class ClosureMatchesOut(BaseModel):
+    closure_id: int
+    query_frame: MatchedFrameOut = Field(description="The frame the observation stored.")
+    frame: MatchedFrameOut = Field(description="The matched frame.")
+    matcher: str
+    matches: int = Field(description="Tentative matches given to RANSAC.")
+    inliers: int = Field(
+        description="RANSAC inliers, recomputed now from the stored keypoints (they may differ "
+        "slightly from those recorded when the loop closed)."
+    )
+    model: str = Field(description="essential, fundamental or none.")
+    relative_pose: RelativePoseOut | None
+    pairs: list[list[float]] = Field(
+        description="[x_query, y_query, x_frame, y_frame] per inlier (at most `limit`), each in "
+        "its frame's decoded-image pixels."
+    )
 
 
 class RobotOut(BaseModel):

@@ -111,12 +111,17 @@ class ClosureRecord:
     query_thumbnail: bool  # whether the query image's thumbnail was kept
 
 
+def closure_row(session: Session, atlas: Atlas, closure_id: int) -> LoopClosure:
+    """A loop closure of the atlas (NotFound when it is another atlas's or absent)."""
+    row = session.get(LoopClosure, closure_id)
+    if row is None or row.atlas_id != atlas.id:
+        raise NotFound(f"loop closure {closure_id} does not exist in atlas '{atlas.name}'")
+    return row
+
+
 def _closure(session: Session, atlas: str, closure_id: int) -> tuple[Atlas, LoopClosure]:
     found = repo.get_atlas(session, name=atlas)
-    row = session.get(LoopClosure, closure_id)
-    if row is None or row.atlas_id != found.id:
-        raise NotFound(f"loop closure {closure_id} does not exist in atlas '{atlas}'")
-    return found, row
+    return found, closure_row(session, found, closure_id)
 
 
 def loop_closure(sessions: Sessions, atlas: str, closure_id: int) -> ClosureRecord:

@@ -1,6 +1,6 @@
 """Inter-robot loop closures: a robot recognised a place that another robot mapped.
 
-Each query (and, once wired, each observation) whose answer is a loop closure onto a frame
+Each query and each observation whose answer is a loop closure onto a frame
 taken by a different robot than the one asking is recorded, so a fleet's map-merging back end
 can list the links between the robots' trajectories.
 """
@@ -21,9 +21,17 @@ SOURCES = ("query", "observe")
 
 
 def record_if_inter_robot(
-    sessions: sessionmaker[Session], *, robot_id: str | None, result: QueryResult, source: str
+    sessions: sessionmaker[Session],
+    *,
+    robot_id: str | None,
+    result: QueryResult,
+    source: str,
+    query_frame_id: int | None = None,
 ) -> int | None:
-    """Record ``result`` when it closes a loop onto another robot's frame; returns the row id."""
+    """Record ``result`` when it closes a loop onto another robot's frame; returns the row id.
+
+    ``query_frame_id``: the frame an observation stored (its keypoints let the matches be
+    redrawn later); a query stores none."""
     assert source in SOURCES, source
     match = result.match
     if robot_id is None or not result.loop_closure or match is None:
@@ -45,6 +53,7 @@ def record_if_inter_robot(
             source=source,
             inliers=match.inliers,
             relative_pose=asdict(match.relative_pose) if match.relative_pose else None,
+            query_frame_id=query_frame_id,
         )
         session.add(row)
         session.flush()

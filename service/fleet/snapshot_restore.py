@@ -269,6 +269,9 @@ def _write_loop_closures(
                 "atlas_id": atlas_id,
                 "frame_id": frame_map[c.frame_id],
                 "submap_id": submap_map[c.submap_id],
+                "query_frame_id": (
+                    frame_map[c.query_frame_id] if c.query_frame_id is not None else None
+                ),
             }
             for c in snapshot.loop_closures
         ],

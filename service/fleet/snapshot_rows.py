@@ -125,6 +125,7 @@ class LoopClosureRow(_Row):
     created_at: datetime
     inliers: int | None = Field(None, ge=0)  # absent from archives written before them
     relative_pose: RelativePoseRow | None = None
+    query_frame_id: RowId | None = None  # the observing frame (absent: a query, or older)
 
 
 RowT = TypeVar("RowT", bound=BaseModel)
@@ -253,7 +254,11 @@ def decode_snapshot(
             raise InvalidInput(f"{where}: {exc}") from exc
         by_id[frame.id] = frame
     for number, closure in enumerate(closures, 1):
-        if closure.frame_id not in by_id or closure.submap_id not in known_submaps:
+        if (
+            closure.frame_id not in by_id
+            or closure.submap_id not in known_submaps
+            or (closure.query_frame_id is not None and closure.query_frame_id not in by_id)
+        ):
             raise InvalidInput(
                 f"the snapshot's loop_closures.jsonl, line {number}: unknown frame or submap"
             )

@@ -246,6 +246,11 @@ class LoopClosure(Base):
     # {"rotation": [w, x, y, z], "translation": [x, y, z]} of the query camera to the frame's
     inliers: Mapped[int | None] = mapped_column(Integer)
     relative_pose: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    # the observing robot's frame stored by the same ``observe`` call (None for a ``query``,
+    # which keeps no frame, or once that frame is deleted): matches are redrawn from its keypoints
+    query_frame_id: Mapped[int | None] = mapped_column(
+        ForeignKey("frames.id", ondelete="SET NULL"), index=True
+    )
 
 
 class FrameThumbnail(Base):

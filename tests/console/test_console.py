@@ -187,24 +187,50 @@ def test_query_page_finds_the_place(console: Console) -> None:
 
 
 def test_loop_closures_graph_and_one_closure_side_by_side(console: Console) -> None:
+    intrinsics = {"fx": 90.0, "fy": 90.0, "cx": 49.5, "cy": 28.0}
+    inliers = {}
     with console.client("robot") as husky2:  # husky-2 revisits the places husky-1 mapped
         for place in ROUTE["husky-1"]:
-            answer = husky2.query(
-                ATLAS,
-                cohog(place, "query"),
-                intrinsics={"fx": 90.0, "fy": 90.0, "cx": 49.5, "cy": 28.0},
-            )
+            answer = husky2.query(ATLAS, cohog(place, "query"), intrinsics=intrinsics)
             assert answer.match is not None and answer.match.frame_id == console.frames[place]
-        closed = len(husky2.loop_closures(ATLAS))  # one per verified loop closure
-    assert closed >= 1, "husky-2 should recognise at least one of husky-1's places"
+            inliers[place] = answer.match.inliers or 0
+        # ... and observes the place it recognised best as its new keyframe: the frame is kept,
+        # so that closure's matches can be drawn
+        observed = max(inliers, key=inliers.__getitem__)
+        seen = husky2.observe(
+            ATLAS,
+            cohog(observed, "query"),
+            submap=SUBMAPS_OF["husky-2"][1],
+            robot_id="husky-2",
+            intrinsics=intrinsics,
+        )
+        assert seen.loop_closure and seen.match is not None
+        assert seen.match.frame_id == console.frames[observed]
+        found = husky2.loop_closures(ATLAS)  # one per verified loop closure, newest first
+        drawn = husky2.loop_closure_matches(ATLAS, found[0].id)
+    closed = len(found)
+    assert closed >= 2, "husky-2 should recognise at least one of husky-1's places"
+    assert found[0].source == "observe"
     page = console.page("operator")
     page.click("nav a[data-page=closures]")
     page.wait_for_selector("[data-testid=closure-graph] line", state="attached")
     assert page.locator("[data-testid=edge-count]").all_text_contents() == [str(closed)]
     assert page.locator("tr[data-testid^=closure-]").count() == closed
-    page.locator("tr[data-testid^=closure-]").first.click()
+    page.locator(f"tr[data-testid=closure-{found[-1].id}]").click()  # a query's: no matches
     page.wait_for_selector("[data-testid=relative-pose]")
     thumbnails_loaded(page, "[data-testid=closure-detail] img")
+    assert "R q" in (page.text_content("[data-testid=relative-pose]") or "")
+    assert page.locator("[data-testid=closure-matches]").count() == 0
+
+    page.locator(f"tr[data-testid=closure-{found[0].id}]").click()  # the observation's
+    page.wait_for_selector("[data-testid=closure-matches] image[data-loaded]", state="attached")
+    page.wait_for_function(
+        "document.querySelectorAll('[data-testid=closure-matches] image[data-loaded]').length == 2"
+    )
+    lines = page.locator("[data-testid=closure-matches] line")
+    assert lines.count() == len(drawn.pairs) > 0
+    summary = page.text_content("[data-testid=match-summary]") or ""
+    assert summary.startswith(f"{lines.count()} inliers"), summary
     assert "R q" in (page.text_content("[data-testid=relative-pose]") or "")
     shoot(page, "loop-closures")
     page.close()

@@ -67,6 +67,7 @@ RULES: dict[tuple[str, str], Rule] = {
     ("GET", "/v1/atlases/{atlas}/loop-closures"): ROBOT,
     ("GET", "/v1/atlases/{atlas}/loop-closures/{closure_id}"): ROBOT,
     ("GET", "/v1/atlases/{atlas}/loop-closures/{closure_id}/query-thumbnail"): ROBOT,
+    ("GET", "/v1/atlases/{atlas}/loop-closures/{closure_id}/matches"): ROBOT,
     ("GET", "/v1/atlases/{atlas}/frames"): ROBOT,
     ("GET", "/v1/atlases/{atlas}/robots"): ROBOT,
     ("GET", "/v1/atlases/{atlas}/frames/{frame_id}/keypoints"): ROBOT,

@@ -3,6 +3,7 @@ robot or submap, each robot's activity, and frame thumbnails."""
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
@@ -11,8 +12,16 @@ from service.api.auth import RobotAccess, get_authenticator
 from service.api.deps import RowId, ServiceDep
 from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, RelativePoseOut
-from service.api.schemas_browse import CallerOut, KeypointsOut, LoopClosureDetailOut, RobotOut
+from service.api.schemas_browse import (
+    CallerOut,
+    ClosureMatchesOut,
+    KeypointsOut,
+    LoopClosureDetailOut,
+    MatchedFrameOut,
+    RobotOut,
+)
 from service.atlas import browse
+from service.atlas.closure_matches import closure_matches
 from service.ml import thumbnails
 
 router = APIRouter(tags=["browse"])
@@ -140,6 +149,44 @@ def loop_closure(
         created_at=row.created_at,
         frame=frame_out(found.frame),
         query_thumbnail=found.query_thumbnail,
+        query_frame_id=row.query_frame_id,
+    )
+
+
+@router.get(
+    "/atlases/{atlas}/loop-closures/{closure_id}/matches",
+    response_model=ClosureMatchesOut,
+    responses={
+        404: {
+            "model": ErrorOut,
+            "description": "Unknown closure, or one from a query (only observed frames are kept)",
+        },
+        409: {"model": ErrorOut, "description": "The atlas was built with other features"},
+    },
+    summary="A loop closure's verified matches, recomputed from both frames' stored keypoints",
+)
+def loop_closure_matches(
+    atlas: str,
+    closure_id: RowId,
+    service: ServiceDep,
+    _: RobotAccess,
+    limit: Annotated[int, Query(ge=1, le=10_000, description="Inlier pairs at most.")] = 1000,
+) -> ClosureMatchesOut:
+    found = closure_matches(
+        service.sessions, service.frames, service.verification, atlas, closure_id, limit
+    )
+    return ClosureMatchesOut(
+        closure_id=found.closure_id,
+        query_frame=MatchedFrameOut(**asdict(found.query_frame)),
+        frame=MatchedFrameOut(**asdict(found.frame)),
+        matcher=found.matcher,
+        matches=found.matches,
+        inliers=found.inliers,
+        model=found.model,
+        relative_pose=RelativePoseOut(**asdict(found.relative_pose))
+        if found.relative_pose
+        else None,
+        pairs=found.pairs,
     )
 
 

@@ -111,5 +111,11 @@ def observe(
         k=k,
         query_filter=query_filter,
     )
-    record_if_inter_robot(service.sessions, robot_id=robot_id, result=result, source="observe")
+    record_if_inter_robot(
+        service.sessions,
+        robot_id=robot_id,
+        result=result,
+        source="observe",
+        query_frame_id=frame.id,
+    )
     return ObserveOut.model_validate({**asdict(result), "frame_id": frame.id})

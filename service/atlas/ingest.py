@@ -60,10 +60,11 @@ class FrameIngest:
     def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
         """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
         atlas = repo.get_atlas(session, name=atlas_name)
-        if atlas.feature_signature != self.pipeline.signature:
+        if not self.pipeline.signature.matches(atlas.feature_signature):
             raise Conflict(
                 f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
-                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+                f"extracts {self.pipeline.signature.to_json()}; run the service with the atlas's "
+                "preset"
             )
         return atlas
 

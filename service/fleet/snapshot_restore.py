@@ -30,10 +30,7 @@ from service.errors import Conflict, InvalidInput
 from service.fleet.snapshot_archive import known_revisions, read_archive
 from service.fleet.snapshot_rows import DecodedSnapshot, FrameRow, decode_snapshot
 from service.index import AtlasIndex
-from service.ml.backbones.registry import backbone_spec
-from service.ml.local_extractors import LOCAL_EXTRACTORS
 from service.ml.pipeline import embed_vectors
-from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame, FrameFeatureRow, LoopClosure, ModelVersion, Submap
@@ -65,23 +62,19 @@ def restore_atlas(
             "which this LoopNet does not know: restore it with a newer LoopNet"
         )
     preset = settings.preset()
-    expected = preset_signature(preset)
-    if archive.manifest.feature_signature != expected:
+    expected = preset.signature
+    if not expected.matches(archive.manifest.feature_signature):
         raise Conflict(
             f"the snapshot holds features {archive.manifest.feature_signature}, but this "
-            f"deployment extracts {expected}; restore it on a service running the snapshot's "
-            "settings"
+            f"deployment extracts {expected.to_json()}; restore it on a service running the "
+            "snapshot's settings"
         )
     name = validate_name("atlas", name or archive.manifest.atlas)
     with sessions() as session:
         if session.scalar(select(Atlas.id).where(Atlas.name == name)) is not None:
             raise Conflict(f"atlas '{name}' already exists")
-    feature_dims = (
-        LOCAL_EXTRACTORS[preset.local.name].descriptor_dim,
-        backbone_spec(preset.backbone.name).dim,
-    )
-    snapshot = decode_snapshot(archive, limits, feature_dims)
-    if snapshot.atlas.feature_signature != expected:
+    snapshot = decode_snapshot(archive, limits, expected.dims)
+    if not expected.matches(snapshot.atlas.feature_signature):
         raise InvalidInput("the snapshot's atlas.json disagrees with its manifest's features")
     vectors = _embeddings(snapshot)
     written: list[Path] = []

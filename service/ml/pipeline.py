@@ -4,7 +4,6 @@ evaluation harness share."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 import torch
@@ -14,7 +13,7 @@ from service.ml.backbones import GlobalBackbone, build_backbone
 from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
-from service.ml.presets import ModelPreset, preset_signature
+from service.ml.presets import FeatureSignature, ModelPreset
 
 
 class FeaturePipeline:
@@ -26,9 +25,9 @@ class FeaturePipeline:
         self.backbone: GlobalBackbone = build_backbone(preset.backbone)
 
     @property
-    def signature(self) -> dict[str, Any]:
+    def signature(self) -> FeatureSignature:
         """What the stored features mean; an atlas only accepts features of its signature."""
-        return preset_signature(self.preset)
+        return self.preset.signature
 
     def heads_config(self) -> HeadsConfig:
         """The untrained heads' config for this pipeline's features and preset."""

@@ -96,12 +96,7 @@ class JobRunner:
             path.unlink(missing_ok=True)
 
     def _retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
-        config = TrainingConfig(
-            **{
-                **params,
-                "train": tuple(params.get("train", ("fusion", "similarity", "classifier"))),
-            }
-        )
+        config = TrainingConfig(**params)
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)

@@ -18,7 +18,13 @@ from prometheus_client import CONTENT_TYPE_LATEST, REGISTRY, CollectorRegistry, 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
 
-from service.api.auth import api_key_header, bearer, get_authenticator
+from service.api.auth import (
+    PRINCIPAL_KEY,
+    api_key_header,
+    bearer,
+    client_address,
+    get_authenticator,
+)
 from service.fleet.keys import Role
 from service.jobs.stats import job_figures
 from service.runtime import Runtime
@@ -125,7 +131,11 @@ def metrics_access(
     runtime: Runtime = request.app.state.runtime
     if not runtime.settings.metrics_public:
         token = credentials.credentials if credentials is not None else api_key
-        get_authenticator(request).authorize(token, Role.operator, None)
+        authenticator = get_authenticator(request)
+        principal = request.scope.get(PRINCIPAL_KEY) or authenticator.authenticate(
+            token, client_address(request)
+        )
+        authenticator.authorize(principal, Role.operator, None)
 
 
 @router.get(

@@ -10,10 +10,12 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.api.app import create_app
+from service.fleet.keys import Role
 from service.storage import jobs
 from service.storage.db import transaction
 from tests.api.helpers import add_frame, create_atlas
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
+from tests.fleet.test_auth import bearer, new_key
 
 Samples = dict[tuple[str, frozenset[tuple[str, str]]], float]
 
@@ -122,3 +124,6 @@ def test_metrics_can_require_an_operator_key(tmp_path, pipeline) -> None:  # typ
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         assert client.get("/metrics").status_code == 401
+        robot, operator = new_key(client, Role.robot), new_key(client, Role.operator)
+        assert client.get("/metrics", headers=bearer(robot)).status_code == 403
+        assert client.get("/metrics", headers=bearer(operator)).status_code == 200

@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from service.atlas.names import NAME_PATTERN
 from service.ml.training import TrainingConfig
 
 
@@ -17,7 +18,7 @@ class ErrorOut(BaseModel):
 
 
 class AtlasIn(BaseModel):
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", examples=["campus"])
+    name: str = Field(pattern=NAME_PATTERN.pattern, examples=["campus"])
     description: str = Field("", max_length=1000)
 
 
@@ -37,7 +38,7 @@ class AtlasOut(BaseModel):
 
 
 class SubmapIn(BaseModel):
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", examples=["corridor-3"])
+    name: str = Field(pattern=NAME_PATTERN.pattern, examples=["corridor-3"])
 
 
 class SubmapOut(BaseModel):

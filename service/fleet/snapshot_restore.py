@@ -142,8 +142,9 @@ def _write_atlas(
             row = version.row
             weights_path = None
             if row.weights is not None:
-                target = models_store.weights_file(settings.models_dir, atlas.id, row.version)
-                weights_path = str(target.relative_to(settings.models_dir))
+                weights_path = models_store.row_weights_path(
+                    settings.models_dir, atlas.id, row.version
+                )
             session.add(
                 ModelVersion(
                     atlas_id=atlas.id,
@@ -276,9 +277,7 @@ def _undo(
         file.unlink(missing_ok=True)
     if atlas_id is None:
         return
-    shutil.rmtree(
-        models_store.weights_file(settings.models_dir, atlas_id, 1).parent, ignore_errors=True
-    )
+    shutil.rmtree(models_store.atlas_models_dir(settings.models_dir, atlas_id), ignore_errors=True)
     try:
         with transaction(sessions) as session:
             session.execute(delete(Atlas).where(Atlas.id == atlas_id))

@@ -177,7 +177,9 @@ class JobRunner:
                     result.heads.config, trained=True, training=asdict(config), job_id=job_id
                 ).to_json(),
                 metrics=metrics,
-                weights_path=str(weights.relative_to(self.settings.models_dir)),
+                weights_path=models_store.row_weights_path(
+                    self.settings.models_dir, atlas_id, version
+                ),
                 activate=True,
             )
             jobs.finish_job(

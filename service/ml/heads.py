@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+DEFAULT_ALPHA = 0.7
+
 
 @dataclass(frozen=True)
 class HeadsConfig:
@@ -32,7 +34,7 @@ class HeadsConfig:
 
     local_dim: int
     global_dim: int
-    alpha: float = 0.7
+    alpha: float = DEFAULT_ALPHA
     hidden_dim: int = 256
     # None: the fused space is D and R side by side (block identities, the untrained model).
     embed_dim: int | None = None

@@ -15,6 +15,7 @@ from typing import Any, get_type_hints
 
 from service.ml.backbones import BackboneConfig
 from service.ml.backbones.registry import BACKBONES
+from service.ml.heads import DEFAULT_ALPHA
 from service.ml.local_extractors import LOCAL_EXTRACTORS, LocalExtractorConfig
 
 NOT_A_SIGNATURE = "not a feature signature (exactly the 'local' and 'backbone' settings)"
@@ -79,7 +80,7 @@ class ModelPreset:
     name: str
     local: LocalExtractorConfig
     backbone: BackboneConfig
-    alpha: float = 0.7
+    alpha: float = DEFAULT_ALPHA
 
     @property
     def signature(self) -> FeatureSignature:

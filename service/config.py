@@ -73,6 +73,9 @@ class Settings(BaseSettings):
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    offline: bool = Field(
+        False, description="Never download missing pretrained weights (air-gapped installs)."
+    )
     job_stale_seconds: float = Field(
         600.0,
         gt=0,

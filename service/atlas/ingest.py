@@ -37,7 +37,9 @@ def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
 
 
 def embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
-    return embed_vectors(heads, features.local_vector[None], features.global_vector[None])[0]
+    vectors = embed_vectors(heads, features.local_vector[None], features.global_vector[None])
+    row: np.ndarray = vectors[0]
+    return row
 
 
 class FrameIngest:

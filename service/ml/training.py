@@ -340,7 +340,7 @@ def train_heads(
         )
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
-        loss.backward()
+        torch.autograd.backward(loss)
         optimiser.step()
         heads.eval()
         epochs_run = epoch + 1

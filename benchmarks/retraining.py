@@ -51,7 +51,7 @@ def synthetic_atlas(submaps: int, per_submap: int, seed: int = 0) -> TrainingDat
 
 def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> None:
     data = synthetic_atlas(submaps, per_submap)
-    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM)
     config = TrainingConfig(shots=shots)
     train_heads(data, base, TrainingConfig(shots=shots, epochs=2))  # warm-up (imports, allocator)
     times, cpu_times, epochs = [], [], []
@@ -70,7 +70,7 @@ def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> N
 
 
 def bench_reembedding(frames: int, embed_dim: int, precision: Precision = "fp32") -> None:
-    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM)
     data = synthetic_atlas(20, 10)
     heads = train_heads(data, base, TrainingConfig(shots=5, epochs=3, embed_dim=embed_dim)).heads
     index = AtlasIndex(heads.config.fused_dim)

@@ -74,6 +74,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # their INFO lines (faiss's loader, each temporary atlas's migrations) would break the bars
     for chatty in ("faiss", "alembic"):
         logging.getLogger(chatty).setLevel(logging.WARNING)
+    from service.config import Settings
     from service.evaluation.datasets import DatasetError
     from service.evaluation.runner import EvalConfig, command_line, run_evaluation
     from service.ml.precision import resolve_precision
@@ -83,7 +84,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from service.ml.weights import set_offline
 
+    set_offline(Settings().offline)
     config = EvalConfig(
         dataset=args.dataset,
         output=args.out,

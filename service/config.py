@@ -9,9 +9,9 @@ from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.fleet.snapshot_archive import ArchiveLimits
+from service.ml.image_limits import ImageLimits
 
 if TYPE_CHECKING:  # the ML modules import torch; the keys and snapshot commands must not
-    from service.ml.images import ImageLimits
     from service.ml.presets import ModelPreset
 
 
@@ -59,8 +59,8 @@ class Settings(BaseSettings):
     exclude_recent_seconds: float = Field(
         30.0, ge=0.0, description="Nor do its frames taken within T seconds of the query."
     )
-    max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
-    max_image_pixels: int = Field(40_000_000, ge=1024)
+    max_upload_bytes: int = Field(ImageLimits.max_bytes, ge=1024)
+    max_image_pixels: int = Field(ImageLimits.max_pixels, ge=1024)
     max_snapshot_bytes: int = Field(
         4 * 1024**3, ge=1024, description="Largest snapshot archive POST /v1/snapshots accepts."
     )
@@ -73,6 +73,9 @@ class Settings(BaseSettings):
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    offline: bool = Field(
+        False, description="Never download missing pretrained weights (air-gapped installs)."
+    )
     job_stale_seconds: float = Field(
         600.0,
         gt=0,
@@ -171,8 +174,6 @@ class Settings(BaseSettings):
 
     @property
     def image_limits(self) -> ImageLimits:
-        from service.ml.images import ImageLimits
-
         return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)
 
     @property

@@ -18,6 +18,7 @@ from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
 from service.jobs.queue import Queue
+from service.ml import weights
 from service.ml.pipeline import FeaturePipeline
 from service.storage.db import (
     make_engine,
@@ -48,6 +49,7 @@ class Runtime:
         make_private_dir(self.settings.data_dir)
         if self.settings.torch_threads:
             torch.set_num_threads(self.settings.torch_threads)
+        weights.set_offline(self.settings.offline)
         upgrade_database(self.settings.resolved_database_url)
         self.engine = make_engine(self.settings.resolved_database_url)
         self.sessions = make_session_factory(self.engine)

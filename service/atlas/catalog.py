@@ -77,7 +77,7 @@ class AtlasService:
                 session,
                 name=name,
                 description=description,
-                feature_signature=self.pipeline.signature,
+                feature_signature=self.pipeline.signature.to_json(),
             )
             repo.create_model_version(
                 session,

@@ -37,7 +37,9 @@ def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
 
 
 def embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
-    return embed_vectors(heads, features.local_vector[None], features.global_vector[None])[0]
+    vectors = embed_vectors(heads, features.local_vector[None], features.global_vector[None])
+    row: np.ndarray = vectors[0]
+    return row
 
 
 class FrameIngest:
@@ -60,10 +62,11 @@ class FrameIngest:
     def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
         """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
         atlas = repo.get_atlas(session, name=atlas_name)
-        if atlas.feature_signature != self.pipeline.signature:
+        if not self.pipeline.signature.matches(atlas.feature_signature):
             raise Conflict(
                 f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
-                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+                f"extracts {self.pipeline.signature.to_json()}; run the service with the atlas's "
+                "preset"
             )
         return atlas
 

@@ -15,6 +15,8 @@ from service.atlas.change_feed import revisions
 from service.atlas.loop_closures import list_loop_closures
 from service.atlas.model_versions import VersionConfig
 from service.atlas.state import LoadedAtlas
+from service.errors import Conflict
+from service.ml.presets import FeatureSignature
 from service.storage import repository as repo
 from service.storage.models import Atlas, Frame, LoopClosure, ModelVersion, Submap
 
@@ -56,9 +58,14 @@ def unavailable_atlases(sessions: Sessions, reasons: dict[int, str]) -> dict[str
     return {names[i]: reason for i, reason in reasons.items() if i in names}
 
 
-def feature_signature(sessions: Sessions, atlas: str) -> dict[str, Any]:
+def feature_signature(sessions: Sessions, atlas: str) -> FeatureSignature:
+    """The signature of the atlas's features (Conflict when its row holds none)."""
     with sessions() as session:
-        return repo.get_atlas(session, name=atlas).feature_signature
+        stored = repo.get_atlas(session, name=atlas).feature_signature
+    try:
+        return FeatureSignature.from_json(stored)
+    except ValueError as exc:
+        raise Conflict(f"atlas '{atlas}' records no usable feature signature: {exc}") from exc
 
 
 def submaps_with_counts(sessions: Sessions, atlas: str) -> list[tuple[Submap, int]]:

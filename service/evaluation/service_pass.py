@@ -71,7 +71,7 @@ def cache_path(cache_dir: Path, dataset: Dataset, pipeline: FeaturePipeline) -> 
     remembers its file's size and modification time, so a changed file is extracted again.
     """
     key = json.dumps(
-        {"features": pipeline.signature, "root": str(Path(dataset.root).resolve())},
+        {"features": pipeline.signature.to_json(), "root": str(Path(dataset.root).resolve())},
         sort_keys=True,
     )
     digest = hashlib.sha1(key.encode()).hexdigest()[:16]
@@ -272,5 +272,5 @@ def run_service_pass(
         image_sizes=sizes,
         cached=all_cached,
         threshold=threshold,
-        signature=pipeline.signature,
+        signature=pipeline.signature.to_json(),
     )

@@ -37,6 +37,11 @@ REQUIRED_MEMBERS = frozenset({"manifest.json", *ROW_MEMBERS, "features.npz", "in
 WEIGHTS_MEMBER = re.compile(r"^models/v[1-9][0-9]{0,8}\.pt$")
 
 
+def weights_member(version: int) -> str:
+    """The archive member holding a trained version's weights (what ``WEIGHTS_MEMBER`` matches)."""
+    return f"models/v{version}.pt"
+
+
 def _migrations() -> Any:
     """Alembic's view of the migrations (imported here: settings import this module, and
     alembic is slow to import)."""

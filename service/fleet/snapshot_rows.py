@@ -19,13 +19,20 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.atlas.names import NAME_PATTERN
 from service.errors import InvalidInput
-from service.fleet.snapshot_archive import WEIGHTS_MEMBER, Archive, ArchiveLimits, first_error
+from service.fleet.snapshot_archive import (
+    WEIGHTS_MEMBER,
+    Archive,
+    ArchiveLimits,
+    first_error,
+    weights_member,
+)
 from service.fleet.snapshot_features import MAX_DIM, Features, decode_features
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import HeadsConfig, LoopNetHeads
 
-NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"  # the API's pattern for atlases, submaps, robots
+NAME = NAME_PATTERN.pattern  # the API's pattern for atlases, submaps, robots
 
 Name = Annotated[str, Field(pattern=NAME)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -217,7 +224,7 @@ def _versions(archive: Archive, features: Features) -> tuple[list[Version], Vers
                 raise InvalidInput(f"the snapshot's trained version {row.version} has no weights")
             heads = LoopNetHeads(_heads_config(heads_row)).eval()
         else:
-            if row.weights != f"models/v{row.version}.pt":
+            if row.weights != weights_member(row.version):
                 raise InvalidInput(f"the snapshot's version {row.version} names other weights")
             heads = _load_weights(row.weights, archive.members[row.weights], heads_row)
         versions.append(Version(row, heads))

@@ -36,7 +36,7 @@ from service.atlas import model_versions as models_store
 from service.atlas import thumbnails
 from service.config import Settings
 from service.errors import Conflict
-from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision
+from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision, weights_member
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
 from service.storage import repository as repo
@@ -126,10 +126,9 @@ def export_atlas(
         for version in versions:
             row = _row(version, skip=("id", "atlas_id", "weights_path"))
             row["weights"] = None
-            if version.weights_path is not None:
-                weights = Path(version.weights_path)
-                weights = weights if weights.is_absolute() else settings.models_dir / weights
-                row["weights"] = f"models/v{version.version}.pt"
+            weights = models_store.weights_of(version, settings.models_dir)
+            if weights is not None:
+                row["weights"] = weights_member(version.version)
                 members[row["weights"]] = weights.read_bytes()
             version_rows.append(row)
         members["model_versions.jsonl"] = _jsonl(version_rows)

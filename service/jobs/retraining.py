@@ -96,12 +96,7 @@ class JobRunner:
             path.unlink(missing_ok=True)
 
     def _retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
-        config = TrainingConfig(
-            **{
-                **params,
-                "train": tuple(params.get("train", ("fusion", "similarity", "classifier"))),
-            }
-        )
+        config = TrainingConfig(**params)
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)
@@ -184,7 +179,9 @@ class JobRunner:
                     result.heads.config, trained=True, training=asdict(config), job_id=job_id
                 ).to_json(),
                 metrics=metrics,
-                weights_path=str(weights.relative_to(self.settings.models_dir)),
+                weights_path=models_store.row_weights_path(
+                    self.settings.models_dir, atlas_id, version
+                ),
                 activate=True,
             )
             jobs.finish_job(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from pydantic import ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.model_versions import VersionConfig
@@ -25,9 +26,12 @@ from service.storage.models import Job, JobStatus
 def check_params(params: dict[str, Any]) -> TrainingConfig:
     """Refuse parameters the training config would refuse (422 before anything is written)."""
     try:
-        return TrainingConfig(**{**params, "train": tuple(params["train"])})
-    except ValueError as exc:
-        raise InvalidInput(str(exc)) from exc
+        return TrainingConfig(**params)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors()
+        )
+        raise InvalidInput(f"invalid job parameters: {problems}") from exc
 
 
 def check_fits(session: Session, config: TrainingConfig, *, atlas_id: int) -> None:

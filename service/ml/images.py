@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import struct
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -17,27 +16,13 @@ import torch.nn.functional as F
 from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
 
 from service.errors import ImageTooLarge, InvalidImage
+from service.ml.image_limits import ImageLimits
 
 ImageFile.LOAD_TRUNCATED_IMAGES = False
 # MPO: the multi-picture JPEG many phone cameras write; its first picture is the photo.
 SUPPORTED_FORMATS = ("JPEG", "MPO", "PNG", "WEBP")
 # What Pillow raises on corrupt input, at open and at decode (found by fuzzing the decoder).
 CORRUPT_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)
-
-
-@dataclass(frozen=True)
-class ImageLimits:
-    """Bounds on an upload, checked before decoding the pixels.
-
-    ``min_side`` and ``max_aspect`` refuse images the extractors find nothing in (a 1x1, a
-    40000x1 strip); ``pixels_setting`` names the setting behind ``max_pixels`` in messages.
-    """
-
-    max_bytes: int = 20 * 1024 * 1024
-    max_pixels: int = 40_000_000
-    min_side: int = 16
-    max_aspect: float = 10.0
-    pixels_setting: str = "LOOPNET_MAX_IMAGE_PIXELS"
 
 
 def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:

@@ -4,7 +4,6 @@ evaluation harness share."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 import torch
@@ -18,7 +17,7 @@ from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
 from service.ml.precision import Precision, resolve_precision
-from service.ml.presets import ModelPreset, preset_signature
+from service.ml.presets import FeatureSignature, ModelPreset
 
 
 class FeaturePipeline:
@@ -46,9 +45,9 @@ class FeaturePipeline:
         )
 
     @property
-    def signature(self) -> dict[str, Any]:
+    def signature(self) -> FeatureSignature:
         """What the stored features mean; an atlas only accepts features of its signature."""
-        return preset_signature(self.preset)
+        return self.preset.signature
 
     def heads_config(self) -> HeadsConfig:
         """The untrained heads' config for this pipeline's features and preset."""

@@ -55,10 +55,14 @@ MODEL_POLICIES: dict[str, ModelPolicy] = {
 }
 
 
+def _onednn_available() -> bool:
+    return bool(torch.backends.mkldnn.is_available())  # type: ignore[no-untyped-call]
+
+
 @functools.cache
 def cpu_has_native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
     """True when oneDNN is built in and the CPU computes bf16 natively (AVX512-BF16 or AMX)."""
-    if not torch.backends.mkldnn.is_available():
+    if not _onednn_available():
         return False
     try:
         if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
@@ -83,7 +87,7 @@ def resolve_precision(requested: str) -> Precision:
     if requested == "auto":
         return "bf16" if cpu_has_native_bf16() else "fp32"
     if requested == "bf16" and not (
-        torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+        _onednn_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
     ):
         raise ValueError("precision 'bf16' was forced, but this CPU/torch has no oneDNN bf16")
     return "bf16" if requested == "bf16" else "fp32"
@@ -125,7 +129,8 @@ class Float32Island(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with torch.autocast("cpu", enabled=False):
-            return self.inner(x.float())
+            out: torch.Tensor = self.inner(x.float())
+            return out
 
 
 def keep_normalisations_in_fp32(module: nn.Module) -> nn.Module:

@@ -63,7 +63,7 @@ def test_failed_job_leaves_the_active_version(client: TestClient, settings) -> N
 def test_cancelling_a_running_job(client: TestClient, settings, caplog) -> None:  # type: ignore[no-untyped-def]
     caplog.set_level(logging.INFO, logger="service.jobs.retraining")
     atlas_with_two_submaps(client)
-    runner, job_id = submit(client, {"epochs": 100_000, "patience": 100_000, "embed_dim": 8})
+    runner, job_id = submit(client, {"epochs": 2000, "patience": 1000, "embed_dim": 8})  # the most
     thread = threading.Thread(target=runner.run, args=(job_id,))
     thread.start()
     service = client.app.state.runtime.service  # type: ignore[attr-defined]

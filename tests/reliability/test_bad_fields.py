@@ -84,6 +84,9 @@ def test_nul_characters_in_form_fields_are_422(client: TestClient) -> None:
         ({"embed_dim": 4096}, "fused input size 1408"),
         ({"seed": 2**64}, "seed must be in"),
         ({"seed": 10**30}, "seed must be in"),
+        ({"classification_weight": 0, "contrastive_weight": 0}, "loss weight must be positive"),
+        ({"shots": 101}, "less than or equal to 100"),
+        ({"train": ["backbone"]}, "'fusion', 'similarity' or 'classifier'"),
     ],
 )
 def test_retraining_parameters_the_worker_cannot_use_are_422_at_submit(

@@ -76,12 +76,12 @@ def frame_out(record: reads.FrameRecord) -> FrameOut:
     pose = None
     if frame.qw is not None:
         pose = PoseIn(
-            rotation=[frame.qw, frame.qx, frame.qy, frame.qz],  # type: ignore[list-item]
-            translation=[frame.tx, frame.ty, frame.tz],  # type: ignore[list-item]
+            rotation=[frame.qw, frame.qx, frame.qy, frame.qz],
+            translation=[frame.tx, frame.ty, frame.tz],
         )
     intrinsics = None
     if frame.fx is not None:
-        intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)  # type: ignore[arg-type]
+        intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)
     return FrameOut(
         frame_id=frame.id,
         atlas=record.atlas,

@@ -91,7 +91,8 @@ class GlobalBackbone:
         self._std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
 
     def describe(self, rgb: np.ndarray) -> np.ndarray:
-        return self.describe_batch([rgb])[0]
+        vector: np.ndarray = self.describe_batch([rgb])[0]
+        return vector
 
     @torch.inference_mode()
     def describe_batch(self, rgbs: list[np.ndarray]) -> np.ndarray:

@@ -196,7 +196,8 @@ class Job(Base):
 
 
 class AtlasChange(Base):
-    """One frame added to or removed from an atlas, at the atlas revision that did it."""
+    """One frame added to or removed from an atlas, or a model version activated, at the atlas
+    revision that did it."""
 
     __tablename__ = "atlas_changes"
     __table_args__ = (Index("ix_atlas_changes_atlas_revision", "atlas_id", "revision"),)
@@ -204,9 +205,10 @@ class AtlasChange(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
     revision: Mapped[int] = mapped_column(BigInteger)
-    # "add" | "remove"; no foreign key: a removed frame's row is gone
+    # "add" | "remove" | "activate"; no foreign keys: a removed frame's row is gone
     op: Mapped[str] = mapped_column(String(8))
-    frame_id: Mapped[int] = mapped_column(Integer)
+    frame_id: Mapped[int | None] = mapped_column(Integer)  # add, remove
+    model_version: Mapped[int | None] = mapped_column(Integer)  # activate
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 

@@ -66,7 +66,10 @@ class Settings(BaseSettings):
     )
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
     model_poll_seconds: float = Field(
-        1.0, ge=0.0, description="How often a process checks for a newly activated model version."
+        1.0,
+        ge=0.0,
+        description="How long an atlas that failed to load waits before it is tried again "
+        "(a newly activated version arrives through the change feed, every LOOPNET_SYNC_SECONDS).",
     )
     redis_url: str | None = Field(
         None, description="Redis URL for the job queue; default: a SQLite queue in the data dir."
@@ -116,7 +119,8 @@ class Settings(BaseSettings):
         1.0,
         ge=0.05,
         le=3600,
-        description="How often a process applies frames other processes added or removed.",
+        description="How often a process applies frames added or removed and model versions "
+        "activated by any process.",
     )
     change_retention_seconds: float = Field(
         3600.0, ge=60, description="How long the frame change log is kept."

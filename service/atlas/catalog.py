@@ -12,8 +12,8 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas import change_feed, reads
 from service.atlas import model_versions as models_store
-from service.atlas import reads
 from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameIngest
 from service.atlas.names import validate_name
@@ -56,7 +56,6 @@ class AtlasService:
         self._loaded = self.states.loaded_states
         self.broken = self.states.broken
         self.loaded = self.states.loaded
-        self.refresh = self.states.refresh
         self.follow = self.states.follow
         self.flush = self.states.flush
         self.load_all = self.states.load_all
@@ -109,13 +108,11 @@ class AtlasService:
         return unavailable_atlases(self.sessions, self.states.broken.reasons())
 
     def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
-        """Make a model version the active one; this process serves it at once, the others
-        within their poll period."""
+        """Make a model version the active one; every process, this one included, swaps it in
+        within LOOPNET_SYNC_SECONDS plus the time to load it (see :mod:`change_feed`)."""
         with transaction(self.sessions) as session:
             found = repo.get_atlas(session, name=atlas_name)
-            activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
-        self.states.refresh(found.id)
-        return activated
+            return change_feed.activate_version(session, atlas_id=found.id, version=version)
 
     def served_indexes(self) -> list[reads.ServedIndex]:
         """What this process serves: each loaded atlas's index size and change-feed lag."""

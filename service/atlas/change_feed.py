@@ -10,7 +10,12 @@ A :class:`ChangeFollower` thread in each process reads the atlases' revisions ev
 ``LOOPNET_SYNC_SECONDS`` and, for each loaded atlas that moved, applies the logged changes since
 the revision its index reflects. A frame committed through any process is therefore searchable
 in every other within ``LOOPNET_SYNC_SECONDS`` plus the time to embed it from stored features
-(matrix products, no CNN). Deleted atlases are dropped. Log rows older than
+(matrix products, no CNN). Deleted atlases are dropped.
+
+Activating a model version (the API, a retraining job, ``loopnet atlas activate``) is logged the
+same way, in the transaction that flips ``is_active``: each process's follower loads the newly
+active heads and index in its own thread and swaps them in, so request threads never load a
+model and an atlas nobody queries swaps too. Log rows older than
 ``LOOPNET_CHANGE_RETENTION_SECONDS`` are pruned; a process that fell further behind (or whose
 cursor predates the oldest row) reconciles the whole index against the database instead.
 """
@@ -27,12 +32,13 @@ from datetime import timedelta
 from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.models import Atlas, AtlasChange, utcnow
+from service.storage.models import Atlas, AtlasChange, ModelVersion, utcnow
 
 log = logging.getLogger(__name__)
 
-ADD, REMOVE = "add", "remove"
+ADD, REMOVE, ACTIVATE = "add", "remove", "activate"
 
 
 def record(session: Session, *, atlas_id: int, op: str, frame_ids: Iterable[int]) -> int:
@@ -42,8 +48,36 @@ def record(session: Session, *, atlas_id: int, op: str, frame_ids: Iterable[int]
     """
     assert op in (ADD, REMOVE), op
     ids = [int(i) for i in frame_ids]
+    revision = _next_revision(session, atlas_id)
+    session.add_all(
+        AtlasChange(atlas_id=atlas_id, revision=revision, op=op, frame_id=i) for i in ids
+    )
     session.flush()
-    revision = int(
+    return revision
+
+
+def record_activation(session: Session, *, atlas_id: int, version: int) -> int:
+    """Log that the caller's transaction made ``version`` the active one; returns the new
+    revision. Call it last before the commit, like :func:`record`."""
+    revision = _next_revision(session, atlas_id)
+    session.add(
+        AtlasChange(atlas_id=atlas_id, revision=revision, op=ACTIVATE, model_version=version)
+    )
+    session.flush()
+    return revision
+
+
+def activate_version(session: Session, *, atlas_id: int, version: int) -> ModelVersion:
+    """Make ``version`` the atlas's active one and log it: every process's follower swaps it
+    in once the caller's transaction commits."""
+    chosen = repo.activate_model_version(session, atlas_id=atlas_id, version=version)
+    record_activation(session, atlas_id=atlas_id, version=version)
+    return chosen
+
+
+def _next_revision(session: Session, atlas_id: int) -> int:
+    session.flush()
+    return int(
         session.execute(
             update(Atlas)
             .where(Atlas.id == atlas_id)
@@ -51,11 +85,6 @@ def record(session: Session, *, atlas_id: int, op: str, frame_ids: Iterable[int]
             .returning(Atlas.revision)
         ).scalar_one()
     )
-    session.add_all(
-        AtlasChange(atlas_id=atlas_id, revision=revision, op=op, frame_id=i) for i in ids
-    )
-    session.flush()
-    return revision
 
 
 def revisions(session: Session) -> dict[int, int]:
@@ -74,12 +103,16 @@ class Changes:
     complete: bool  # False: the log no longer reaches back that far; reconcile everything
     added: list[int] = field(default_factory=list)
     removed: list[int] = field(default_factory=list)
+    activated: int | None = None  # the last model version activated meanwhile, if any
 
 
 def changes_between(session: Session, *, atlas_id: int, after: int, upto: int) -> Changes:
-    """Frames added and removed by revisions ``after + 1 .. upto`` (a removal wins)."""
+    """Frames added and removed by revisions ``after + 1 .. upto`` (a removal wins), and the
+    last version activated by them."""
     rows = session.execute(
-        select(AtlasChange.revision, AtlasChange.op, AtlasChange.frame_id)
+        select(
+            AtlasChange.revision, AtlasChange.op, AtlasChange.frame_id, AtlasChange.model_version
+        )
         .where(
             AtlasChange.atlas_id == atlas_id,
             AtlasChange.revision > after,
@@ -91,7 +124,13 @@ def changes_between(session: Session, *, atlas_id: int, after: int, upto: int) -
         return Changes(complete=False)
     removed = {int(r.frame_id) for r in rows if r.op == REMOVE}
     added = [int(r.frame_id) for r in rows if r.op == ADD and int(r.frame_id) not in removed]
-    return Changes(complete=True, added=added, removed=sorted(removed))
+    activations = [int(r.model_version) for r in rows if r.op == ACTIVATE]
+    return Changes(
+        complete=True,
+        added=added,
+        removed=sorted(removed),
+        activated=activations[-1] if activations else None,
+    )
 
 
 def prune(session: Session, *, older_than_seconds: float) -> int:

@@ -162,7 +162,7 @@ class AtlasQueries:
     ) -> QueryResult:
         with self.sessions() as session:
             atlas = self.ingest.checked_atlas(session, atlas_name)
-            state = self.states.loaded(atlas.id, session)
+            state = self.states.loaded(atlas.id)
             timings: dict[str, float] = {}
             start = time.perf_counter()
             embedding = embed(state.heads, features)

@@ -1,14 +1,13 @@
 """The loaded state of each atlas (active heads + FAISS index): loaded on first use, reconciled
-with the database, swapped when another model version becomes active, and kept following the
-change feed of frames other processes add or remove."""
+with the database, and kept following the change feed: frames any process adds or removes, and
+model versions activated anywhere (swapped in by the follower thread, never by a request)."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
 import threading
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,6 @@ class LoadedAtlas:
     heads: LoopNetHeads
     index: AtlasIndex
     dirty: bool = False
-    checked_at: float = field(default_factory=time.monotonic)
     revision: int = 0  # the atlas revision the index reflects (see service/atlas/change_feed.py)
 
 
@@ -82,57 +80,51 @@ class AtlasStates:
         with self._loaded_lock:
             self.loaded_states.pop(atlas_id, None)
 
-    def loaded(self, atlas_id: int, session: Session | None = None) -> LoadedAtlas:
-        """The in-memory state of an atlas: loaded on first use, and swapped for the new one
-        when another process (a retraining worker, an operator's rollback) has activated another
-        model version. Queries in flight keep the state they started with. ``session``: the
-        caller's open session, used for the active-version check instead of a new one."""
+    def loaded(self, atlas_id: int) -> LoadedAtlas:
+        """The in-memory state of an atlas, loaded on first use. Another model version
+        activated later is swapped in by :meth:`follow`, never here."""
         state = self.current(atlas_id)
-        if state is not None and not self._active_version_changed(state, session):
+        if state is not None:
             return state
         with self.lock(atlas_id):
             current = self.current(atlas_id)
-            if current is not None and current is not state:
-                return current  # another thread swapped meanwhile
+            if current is not None:
+                return current  # another thread loaded it meanwhile
             new = self.broken.load(atlas_id, lambda: self._load(atlas_id))
-            if state is not None:
-                log.info(
-                    "atlas %d: now serving model version %d (was %d)",
-                    atlas_id,
-                    new.model_version,
-                    state.model_version,
-                )
-                if state.dirty:
-                    self.save_index(state)  # keep the old version's file current for rollback
             with self._loaded_lock:
                 self.loaded_states[atlas_id] = new
             return new
 
-    def refresh(self, atlas_id: int) -> LoadedAtlas:
-        """Serve the database's active version now, without waiting for the next poll."""
-        state = self.current(atlas_id)
-        if state is not None:
-            state.checked_at = float("-inf")
-        return self.loaded(atlas_id)
-
-    def _active_version_changed(self, state: LoadedAtlas, session: Session | None) -> bool:
-        """Whether the database's active version differs (checked at most once per poll period)."""
-        now = time.monotonic()
-        if now - state.checked_at < self.settings.model_poll_seconds:
-            return False
-        state.checked_at = now
-        if session is None:
-            with self.sessions() as own:
-                return self._active_version_changed_in(own, state)
-        return self._active_version_changed_in(session, state)
+    def _swap(self, old: LoadedAtlas) -> None:
+        """Serve the database's active version instead of ``old`` (the caller holds the atlas
+        lock). Queries in flight keep the state they started with. If it cannot be loaded, the
+        atlas answers 503 with the reason, as a broken atlas does at start."""
+        atlas_id = old.atlas_id
+        if old.dirty:
+            self.save_index(old)  # keep the old version's file current for a rollback
+        try:
+            new = self.broken.load(atlas_id, lambda: self._load(atlas_id))
+        except (AtlasUnavailable, NotFound):
+            self.forget(atlas_id)
+            return
+        log.info(
+            "atlas %d: now serving model version %d (was %d)",
+            atlas_id,
+            new.model_version,
+            old.model_version,
+        )
+        with self._loaded_lock:
+            self.loaded_states[atlas_id] = new
 
     @staticmethod
-    def _active_version_changed_in(session: Session, state: LoadedAtlas) -> bool:
+    def _serves_active(session: Session, state: LoadedAtlas) -> bool:
+        """Whether ``state`` has the database's active version (an activation pruned from the
+        log is caught here)."""
         try:
             active = repo.active_model_version(session, atlas_id=state.atlas_id)
         except NotFound:
-            return False  # the atlas is being deleted
-        return active.version != state.model_version
+            return True  # the atlas is being deleted
+        return active.version == state.model_version
 
     def index_path(self, atlas_id: int, version: int) -> Path:
         return models_store.index_file(self.settings.index_dir, atlas_id, version)
@@ -209,7 +201,8 @@ class AtlasStates:
         """Catch the loaded atlases up with the database (``revisions``: atlas id -> current).
 
         Called by the :class:`~service.atlas.change_feed.ChangeFollower` thread: applies the
-        frames other processes added or removed, and forgets atlases deleted elsewhere.
+        frames other processes added or removed, swaps in a newly activated model version, and
+        forgets atlases deleted elsewhere.
         """
         with self._loaded_lock:
             loaded_ids = list(self.loaded_states)
@@ -227,6 +220,11 @@ class AtlasStates:
                     changes = change_feed.changes_between(
                         session, atlas_id=atlas_id, after=state.revision, upto=upto
                     )
+                    if changes.activated is not None or (
+                        not changes.complete and not self._serves_active(session, state)
+                    ):
+                        self._swap(state)  # loads the frames and revision with the new heads
+                        continue
                     if changes.complete:
                         state.index.remove(np.array(changes.removed, np.int64))
                         add_stored_frames(

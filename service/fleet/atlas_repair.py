@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas import change_feed
 from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.errors import InvalidInput
@@ -72,7 +73,8 @@ def activate_version(
     settings: Settings, sessions: sessionmaker[Session], name: str, version: int
 ) -> None:
     """Make ``version`` the atlas's active one, once its heads are known to load (its index
-    is rebuilt from stored features when the service next loads the atlas, if missing)."""
+    is rebuilt from stored features when the service next loads the atlas, if missing). A
+    running service swaps it in through the change feed."""
     with transaction(sessions) as session:
         atlas = repo.get_atlas(session, name=name)
         chosen = repo.activate_model_version(session, atlas_id=atlas.id, version=version)
@@ -83,3 +85,4 @@ def activate_version(
                 f"model version {version} of atlas '{name}' cannot be loaded either: "
                 f"{type(exc).__name__}: {exc}"
             ) from exc
+        change_feed.record_activation(session, atlas_id=atlas.id, version=version)

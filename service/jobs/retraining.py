@@ -2,8 +2,8 @@
 
 Train new heads on the atlas's stored features, save them as the next model version, re-embed
 every frame into a new index file beside the old one, and only then, in one transaction, make
-the version active and the job succeeded. API processes notice the new active version and swap
-their in-memory index atomically. A failed or cancelled job removes its files and leaves the
+the version active and the job succeeded, logged in the change feed: each API process's follower
+thread loads the new version and swaps its in-memory state atomically. A failed or cancelled job removes its files and leaves the
 active version as it was.
 """
 
@@ -17,6 +17,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas import change_feed
 from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
@@ -192,4 +193,5 @@ class JobRunner:
                 metrics=metrics,
                 model_version=version,
             )
+            change_feed.record_activation(session, atlas_id=atlas_id, version=version)
         return version

@@ -1,8 +1,8 @@
 """Several API processes on one PostgreSQL atlas: each index follows the others' writes.
 
 Two apps (each with its own in-memory indexes, as two processes would have) share one
-PostgreSQL database and data directory; what one ingests or deletes, the other serves within
-LOOPNET_SYNC_SECONDS.
+PostgreSQL database and data directory; what one ingests or deletes, and a model version one activates, the
+other serves within LOOPNET_SYNC_SECONDS.
 """
 
 from __future__ import annotations
@@ -17,6 +17,9 @@ from fastapi.testclient import TestClient
 
 from service.api.app import create_app
 from service.atlas.change_feed import ADD, changes_between, prune, record, revisions
+from service.atlas.model_versions import initial_version_config
+from service.fleet.atlas_repair import activate_version
+from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Atlas
 from tests.api.helpers import add_frame, create_atlas
@@ -25,13 +28,14 @@ from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 SYNC_SECONDS = 0.2
 
 
+def atlas_id_of(client: TestClient, atlas: str = "campus") -> int:
+    with client.app.state.runtime.sessions() as session:  # type: ignore[attr-defined]
+        return int(repo.get_atlas(session, name=atlas).id)
+
+
 def indexed(client: TestClient, atlas: str = "campus") -> set[int]:
     service = client.app.state.runtime.service  # type: ignore[attr-defined]
-    with service.sessions() as session:
-        from service.storage import repository as repo
-
-        atlas_id = repo.get_atlas(session, name=atlas).id
-    return set(service.loaded(atlas_id).index.ids().tolist())
+    return set(service.loaded(atlas_id_of(client, atlas)).index.ids().tolist())
 
 
 def within(seconds: float, condition: Callable[[], bool]) -> float:
@@ -148,3 +152,78 @@ def test_a_process_behind_the_pruned_log_reconciles_everything(
     with runtime_two.sessions() as session:
         runtime_two.service.follow(revisions(session))
     assert indexed(two) == set(later)
+
+
+def add_untrained_version(client: TestClient, atlas: str = "campus") -> int:
+    """A second model version (untrained heads rebuilt from its config, no weights file)."""
+    service = client.app.state.runtime.service  # type: ignore[attr-defined]
+    with transaction(service.sessions) as session:
+        atlas_id = repo.get_atlas(session, name=atlas).id
+        return repo.create_model_version(
+            session,
+            atlas_id=atlas_id,
+            config=initial_version_config(service.pipeline.heads_config()),
+            metrics={},
+            weights_path=None,
+            activate=False,
+        ).version
+
+
+def count_loads(client: TestClient) -> list[str]:
+    """The names of the threads that load an atlas's state from now on."""
+    states = client.app.state.runtime.service.states  # type: ignore[attr-defined]
+    threads: list[str] = []
+    load = states._load
+
+    def counted(atlas_id: int):  # type: ignore[no-untyped-def]
+        threads.append(threading.current_thread().name)
+        return load(atlas_id)
+
+    states._load = counted
+    return threads
+
+
+def serving(client: TestClient, atlas_id: int) -> int | None:
+    """The model version a process holds in memory for an atlas (asks no request)."""
+    state = client.app.state.runtime.service.states.current(atlas_id)  # type: ignore[attr-defined]
+    return None if state is None else state.model_version
+
+
+def test_an_activation_reaches_every_process_through_its_follower(
+    two_apps: tuple[TestClient, TestClient],
+) -> None:
+    """Activating a version (API, then the offline CLI path for the rollback) is swapped in by
+    each process's follower thread: an idle atlas too, and no request ever loads a model."""
+    one, two = two_apps
+    create_atlas(one)
+    create_atlas(one, "idle")
+    frame = add_frame(one, gardens_point_day_night(0, "ref"))["frame_id"]
+    ids = {}
+    for name in ("campus", "idle"):
+        ids[name] = atlas_id_of(two, name)
+        for client in (one, two):  # both processes hold both atlases in memory
+            indexed(client, name)
+        assert add_untrained_version(one, name) == 2
+    loads = {"one": count_loads(one), "two": count_loads(two)}
+
+    activated = one.post("/v1/atlases/campus/models/2/activate")
+    assert activated.status_code == 200 and activated.json()["is_active"]
+    assert one.post("/v1/atlases/idle/models/2/activate").status_code == 200
+    for client in (one, two):
+        delay = within(10 * SYNC_SECONDS + 5, lambda c=client: serving(c, ids["idle"]) == 2)
+        within(10 * SYNC_SECONDS + 5, lambda c=client: serving(c, ids["campus"]) == 2)
+        print(f"version 2 served after {delay:.3f} s")
+    answer = two.post(
+        "/v1/atlases/campus/query",
+        data={"k": "1"},
+        files={"image": ("q.jpg", gardens_point_day_night(0, "ref"))},
+    ).json()
+    assert answer["model_version"] == 2 and answer["match"]["frame_id"] == frame
+
+    settings = one.app.state.runtime.settings  # type: ignore[attr-defined]
+    activate_version(settings, one.app.state.runtime.sessions, "idle", 1)  # type: ignore[attr-defined]
+    for client in (one, two):
+        within(10 * SYNC_SECONDS + 5, lambda c=client: serving(c, ids["idle"]) == 1)
+    assert serving(two, ids["campus"]) == 2
+    assert indexed(two, "campus") == {frame}
+    assert loads == {"one": ["loopnet-sync"] * 3, "two": ["loopnet-sync"] * 3}

@@ -97,6 +97,15 @@ def build_atlas(client: TestClient) -> None:
             assert response.status_code == 201, response.text
 
 
+def served(client: TestClient, place: int, version: int, timeout: float = 10) -> dict:
+    """The query answer once the app's change-feed follower has swapped in ``version``."""
+    deadline = time.monotonic() + timeout
+    while (answer := query(client, place))["model_version"] != version:
+        assert time.monotonic() < deadline, f"version {version} not served within {timeout} s"
+        time.sleep(0.1)
+    return answer
+
+
 def query(client: TestClient, place: int) -> dict:
     name, data = cohog(place, "query")
     response = client.post(
@@ -108,7 +117,7 @@ def query(client: TestClient, place: int) -> dict:
 
 @pytest.fixture
 def app_client(tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
-    settings = make_settings(tmp_path / "data", model_poll_seconds=0.0)
+    settings = make_settings(tmp_path / "data", sync_seconds=0.2)
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         yield client
@@ -147,8 +156,7 @@ def run_retraining_scenario(client: TestClient, env: dict[str, str]) -> None:
         (1, False, False),
         (2, True, True),
     ]
-    after = query(client, 1)
-    assert after["model_version"] == 2
+    after = served(client, 1, 2)
     assert after["predicted_submap"]["available"] is True
     assert after["predicted_submap"]["submap"] in {f"s{i}" for i in range(SUBMAPS)}
     assert 0 < after["predicted_submap"]["probability"] <= 1
@@ -156,8 +164,7 @@ def run_retraining_scenario(client: TestClient, env: dict[str, str]) -> None:
 
     rolled_back = client.post("/v1/atlases/campus/models/1/activate")
     assert rolled_back.status_code == 200 and rolled_back.json()["is_active"]
-    restored = query(client, 1)
-    assert restored["model_version"] == 1
+    restored = served(client, 1, 1)
     assert restored["match"]["similarity"] == pytest.approx(before["match"]["similarity"], abs=1e-5)
 
 
@@ -175,7 +182,7 @@ def test_retraining_with_a_redis_queue(
     redis = redis_queue
     settings = make_settings(
         tmp_path / "data",
-        model_poll_seconds=0.0,
+        sync_seconds=0.2,
         redis_url=redis["LOOPNET_REDIS_URL"],
         queue_name=redis["LOOPNET_QUEUE_NAME"],
     )

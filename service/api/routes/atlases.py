@@ -108,7 +108,8 @@ def list_models(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[Mode
     response_model=ModelVersionOut,
     responses=NOT_FOUND,
     summary="Make a model version the active one (roll back or forward)",
-    description="Every API process serves it within LOOPNET_MODEL_POLL_SECONDS; this one at once.",
+    description="Every API process, this one included, serves it within LOOPNET_SYNC_SECONDS "
+    "plus the time to load it.",
 )
 def activate_model(
     atlas: str, version: RowId, service: ServiceDep, _: OperatorAccess

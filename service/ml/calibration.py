@@ -15,6 +15,7 @@ backbone vectors): re-embedding an atlas never runs a CNN.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -44,6 +45,8 @@ class CalibrationConfig:
         descriptor_sample: descriptors the vocabulary is learned on, at most.
         fit_frames: frames each whitening is fitted on, at most (sampled).
         impostor_pairs: impostor pairs the score model is fitted on, at most.
+        impostor_holdout: share of the fitting frames left out of a second, probe whitening
+            so that impostor pairs pair unseen frames with seen ones, as queries do.
         seed: every sample and the k-means start from it (a calibration is reproducible).
     """
 
@@ -54,7 +57,8 @@ class CalibrationConfig:
     alpha: float = 0.5
     descriptor_sample: int = 100_000
     fit_frames: int = 20_000
-    impostor_pairs: int = 200_000
+    impostor_pairs: int = 100_000
+    impostor_holdout: float = 0.2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -180,8 +184,9 @@ class Calibration:
         global_vectors: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The calibrated branches ``(D_w, R_w)`` of ``n`` frames, each row unit (or zero)."""
-        local = self.local_whitening.transform(self.aggregate(descriptors, scores))
-        local[_empty(descriptors)] = 0.0  # no keypoints: no local evidence, as before
+        raw = self.aggregate(descriptors, scores)
+        local = self.local_whitening.transform(raw)
+        local[~raw.any(1)] = 0.0  # no keypoints: no local evidence, as before
         return local, self.global_whitening.transform(global_vectors)
 
     def fuse(
@@ -267,8 +272,6 @@ class Calibration:
     @classmethod
     def fit(cls, inputs: CalibrationInputs, config: CalibrationConfig) -> FittedCalibration:
         """Fit every part on an atlas's stored features (no labels); see the module doc."""
-        import time
-
         if len(inputs) < 3:
             raise ValueError(f"a calibration needs at least 3 frames, got {len(inputs)}")
         timings: dict[str, float] = {}
@@ -292,32 +295,41 @@ class Calibration:
         timings["aggregate"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        has_local = ~_empty(inputs.descriptors)
+        has_local = local_raw.any(1)  # frames without keypoints aggregate to zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
-        local_rows = fit_rows[has_local[fit_rows]]
-        if len(local_rows) < 2:
-            raise ValueError(
-                "fewer than 2 frames with keypoints: the local branch cannot be fitted"
-            )
-        local_whitening = Whitening.fit(local_raw[local_rows], config.local, seed=config.seed)
-        global_whitening = Whitening.fit(
-            inputs.global_vectors[fit_rows], config.global_, seed=config.seed
-        )
+        calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
         timings["whitening"] = time.perf_counter() - start
 
-        calibration = cls(config, aggregator, local_whitening, global_whitening, None)
         start = time.perf_counter()
-        local_branch = local_whitening.transform(local_raw)
+        local_branch = calibration.local_whitening.transform(local_raw)
         local_branch[~has_local] = 0.0
-        global_branch = global_whitening.transform(inputs.global_vectors)
+        global_branch = calibration.global_whitening.transform(inputs.global_vectors)
         timings["transform"] = time.perf_counter() - start
 
+        # Impostor cosines between frames the whitening has not seen and frames it has, as a
+        # query meets stored frames: in-sample pairs look more orthogonal than any query would.
         start = time.perf_counter()
-        fused = calibration.fuse(local_branch, global_branch)
-        first, second = impostor_pairs(
-            inputs.robots, np.asarray(inputs.order), pairs=config.impostor_pairs, seed=config.seed
+        held = np.zeros(len(inputs), bool)
+        held[fit_rows[: max(1, int(round(config.impostor_holdout * len(fit_rows))))]] = True
+        probe = _fit_branches(
+            config, aggregator, local_raw, inputs.global_vectors, fit_rows[~held[fit_rows]]
         )
-        cosines = np.einsum("ij,ij->i", fused[first], fused[second])
+        probe_local = probe.local_whitening.transform(local_raw)
+        probe_local[~has_local] = 0.0
+        fused = probe.fuse(probe_local, probe.global_whitening.transform(inputs.global_vectors))
+        first, second = impostor_pairs(
+            inputs.robots,
+            np.asarray(inputs.order),
+            pairs=config.impostor_pairs,
+            seed=config.seed,
+            first_from=held,
+        )
+        cosines = np.concatenate(
+            [
+                np.einsum("ij,ij->i", fused[first[i : i + 16_384]], fused[second[i : i + 16_384]])
+                for i in range(0, len(first), 16_384)
+            ]
+        )
         calibration.impostors = ImpostorModel.fit(cosines)
         timings["impostors"] = time.perf_counter() - start
         return FittedCalibration(calibration, local_branch, global_branch, timings)
@@ -333,27 +345,43 @@ class Calibration:
         )
 
 
+def _fit_branches(
+    config: CalibrationConfig,
+    aggregator: Aggregator,
+    local_raw: np.ndarray,
+    global_vectors: np.ndarray,
+    rows: np.ndarray,
+) -> Calibration:
+    """Both whitenings fitted on ``rows`` (local: those with keypoints); no impostor model."""
+    local_rows = rows[local_raw[rows].any(1)]
+    if len(local_rows) < 2:
+        raise ValueError("fewer than 2 frames with keypoints: the local branch cannot be fitted")
+    if len(rows) < 2:
+        raise ValueError("fewer than 2 frames: the global branch cannot be fitted")
+    return Calibration(
+        config,
+        aggregator,
+        Whitening.fit(local_raw[local_rows], config.local, seed=config.seed),
+        Whitening.fit(global_vectors[rows], config.global_, seed=config.seed),
+        None,
+    )
+
+
 def descriptor_sample(
     descriptors: Sequence[np.ndarray], size: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """Up to ``size`` descriptors drawn evenly across frames (float32)."""
-    counts = np.array([len(d) for d in descriptors])
-    total = int(counts.sum())
-    dim = next((d.shape[1] for d in descriptors if d.ndim == 2), 0)
-    if total == 0:
-        return np.zeros((0, dim), np.float32)
-    per_frame = max(1, int(np.ceil(size / max(int((counts > 0).sum()), 1))))
-    chunks = []
-    for d in descriptors:
+    """Up to ``size`` descriptors drawn evenly across frames (float32), in one pass."""
+    per_frame = max(1, int(np.ceil(size / max(len(descriptors), 1))))
+    chunks, dim = [], 0
+    for d in descriptors:  # one pass: a job reads each frame's blob once here
+        dim = d.shape[1]
         if len(d) == 0:
             continue
         take = rng.choice(len(d), size=min(per_frame, len(d)), replace=False)
         chunks.append(np.asarray(d[np.sort(take)], np.float32))
+    if not chunks:
+        return np.zeros((0, dim), np.float32)
     sample = np.concatenate(chunks)
     if len(sample) > size:
         sample = sample[rng.choice(len(sample), size=size, replace=False)]
     return sample
-
-
-def _empty(descriptors: Sequence[np.ndarray]) -> np.ndarray:
-    return np.array([len(d) == 0 for d in descriptors], bool)

@@ -29,12 +29,14 @@ def impostor_pairs(
     pairs: int = 200_000,
     min_gap: int | None = None,
     seed: int = 0,
+    first_from: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)`` of frames that are not the same place by sequence alone.
 
     ``order`` ranks each frame within its robot's sequence (frame ids or timestamps). Pairs of
     one robot need at least ``min_gap`` frames between them (default: a twentieth of the
-    robot's frames, at least 5); pairs of different robots are kept.
+    robot's frames, at least 5); pairs of different robots are kept. With ``first_from`` (a
+    mask), every pair's first frame is inside the mask and its second outside.
     """
     n = len(robots)
     if n < 2:
@@ -47,7 +49,14 @@ def impostor_pairs(
         rank[members[np.argsort(order[members], kind="stable")]] = np.arange(len(members))
     gap = np.maximum(5, sizes // 20)[codes] if min_gap is None else np.full(n, min_gap, np.int64)
     rng = np.random.default_rng(seed)
-    first, second = rng.integers(0, n, size=(2, pairs * 2))
+    if first_from is None:
+        first, second = rng.integers(0, n, size=(2, pairs * 2))
+    else:
+        inside, outside = np.flatnonzero(first_from), np.flatnonzero(~first_from)
+        if len(inside) == 0 or len(outside) == 0:
+            raise ValueError("first_from must leave frames on both sides")
+        first = inside[rng.integers(0, len(inside), pairs * 2)]
+        second = outside[rng.integers(0, len(outside), pairs * 2)]
     keep = (codes[first] != codes[second]) | (np.abs(rank[first] - rank[second]) >= gap[first])
     first, second = first[keep][:pairs], second[keep][:pairs]
     if len(first) == 0:

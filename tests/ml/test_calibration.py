@@ -257,3 +257,21 @@ def test_calibration_variants_and_bad_inputs() -> None:
         CalibrationConfig(alpha=1.5)
     with pytest.raises(ValueError, match="too few"):
         Calibration.fit(inputs, CalibrationConfig(words=100_000))
+
+
+def test_impostor_pairs_can_pair_unseen_frames_with_seen_ones() -> None:
+    mask = np.arange(50) < 10
+    first, second = impostor_pairs(["r"] * 50, np.arange(50), pairs=500, min_gap=3, first_from=mask)
+    assert mask[first].all() and not mask[second].any()
+
+
+def test_calibrated_score_holds_its_meaning_on_frames_the_fit_never_saw() -> None:
+    calibration = Calibration.fit(_synthetic_atlas(n=400), CalibrationConfig(words=8)).calibration
+    stored = _synthetic_atlas(n=400)
+    unseen = _synthetic_atlas(n=80, seed=9)  # other places: every pair is an impostor
+    cosines = (
+        calibration.embed_many(unseen.descriptors, unseen.scores, unseen.global_vectors)
+        @ calibration.embed_many(stored.descriptors, stored.scores, stored.global_vectors).T
+    )
+    passing = float(np.mean(calibration.score(cosines) >= 2.0))  # nominally 1 pair in 100
+    assert 0.002 <= passing <= 0.05

@@ -106,7 +106,8 @@ class ImpostorModel:
         """P(impostor cosine >= c), elementwise."""
         c = np.asarray(cosines, np.float64)
         body = 1.0 - np.interp(c, self.quantiles, self.levels, left=0.0)
-        tail = self.tail_fraction * np.exp(-(c - self.tail_start) / self.tail_scale)
+        excess = np.maximum(c - self.tail_start, 0.0)  # the tail only applies above its start
+        tail = self.tail_fraction * np.exp(-excess / self.tail_scale)
         return np.where(c >= self.tail_start, np.minimum(tail, self.tail_fraction), body)
 
     def score(self, cosines: np.ndarray | float) -> np.ndarray:

@@ -44,7 +44,7 @@ class Settings(BaseSettings):
         None,
         ge=1,
         description="RANSAC inliers at or above which a candidate is verified; default: the "
-        "matcher's own (service.verification.DEFAULT_MIN_INLIERS).",
+        "matcher's own (service.ml.verification.DEFAULT_MIN_INLIERS).",
     )
     verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="MNN matcher's ratio test.")
     ransac_threshold_px: float = Field(

@@ -15,9 +15,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.atlas.loop_closures import record_if_inter_robot
 from service.cli import main
-from service.loop_closures import record_if_inter_robot
-from service.retraining import JobRunner
+from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.geometry import Intrinsics
 from service.ml.features import LocalFeatures
+from service.ml.geometry import Intrinsics
 from service.ml.matching import Matcher, build_matcher
 from service.ml.two_view import (
     RansacConfig,
@@ -28,7 +28,7 @@ from service.ml.two_view import (
 # Minimum RANSAC inliers for a verified candidate, per matcher: LightGlue returns several times
 # more (and more reliable) matches than MNN + ratio, so its bar is higher. Chosen for 100%
 # precision on the development split, queries 0-99 of gardenspoint_cohog200 (DISK at 256 px,
-# benchmarks/choose_verification_thresholds.py; benchmarks/RESULTS.md, issue 5).
+# benchmarks/choose_verification_thresholds.py; the figures are in benchmarks/RESULTS.md).
 DEFAULT_MIN_INLIERS = {"mnn": 44, "lightglue": 137}
 
 

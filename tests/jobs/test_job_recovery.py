@@ -12,13 +12,13 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
+from service.jobs.queue import Queue
+from service.jobs.recovery import recover_jobs
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Job, utcnow
 from tests.conftest import make_settings
-from workers.queue import Queue
-from workers.recovery import recover_jobs
 
 
 @pytest.fixture

@@ -17,16 +17,17 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import models_store
+from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
-from service.index_builder import add_stored_frames
+from service.index.builder import add_stored_frames
 from service.ml.heads import HeadsConfig
 from service.ml.training import TrainingCancelled, TrainingConfig, TrainingData, train_heads
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.feature_store import load_stored_vectors
+from service.storage.models import JobStatus
 
 log = logging.getLogger(__name__)
 
@@ -48,18 +49,20 @@ class JobRunner:
                 return
             kind, atlas_id, params = job.kind, job.atlas_id, dict(job.params)
         if kind != "retrain":
-            self._finish(job_id, "failed", f"unknown job kind {kind!r}")
+            self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
             return
         files: list[Any] = []
         try:
             version = self._retrain(job_id, atlas_id, params, files)
         except TrainingCancelled as exc:
             self._cleanup(files)
-            self._finish(job_id, "cancelled", str(exc))
+            self._finish(job_id, JobStatus.CANCELLED, str(exc))
         except Exception as exc:
             log.exception("job %d failed", job_id)
             self._cleanup(files)
-            self._finish(job_id, "failed", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            self._finish(
+                job_id, JobStatus.FAILED, f"{type(exc).__name__}: {exc}", traceback.format_exc()
+            )
         else:
             log.info("job %d: model version %d of atlas %d is active", job_id, version, atlas_id)
 
@@ -89,9 +92,9 @@ class JobRunner:
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)
-            base = HeadsConfig(**active.config["heads"])
-            ids, local, global_, submaps, _ = load_stored_vectors(session, atlas_id)
-        if len(ids) == 0:
+            base = models_store.VersionConfig.of(active).heads
+            stored = load_stored_vectors(session, atlas_id)
+        if len(stored) == 0:
             raise ValueError("the atlas has no frames to train on")
         base = HeadsConfig(
             local_dim=base.local_dim,
@@ -108,7 +111,7 @@ class JobRunner:
                 return jobs.get_job(session, job_id=job_id).cancel_requested
 
         result = train_heads(
-            TrainingData(local, global_, submaps, ids),
+            TrainingData(stored.local, stored.global_, stored.submaps, stored.ids),
             base,
             config,
             progress=on_epoch,
@@ -122,7 +125,7 @@ class JobRunner:
         files.append(weights)
         result.heads.save(weights)
 
-        self._progress(job_id, 78, f"re-embedding {len(ids)} frames from stored features")
+        self._progress(job_id, 78, f"re-embedding {len(stored)} frames from stored features")
         if cancelled():
             raise TrainingCancelled("cancelled before re-embedding")
         started = time.perf_counter()
@@ -136,7 +139,9 @@ class JobRunner:
             if time.perf_counter() - last_report >= REPORT_SECONDS:
                 last_report = time.perf_counter()
                 self._progress(
-                    job_id, 78 + 16 * done / len(ids), f"re-embedding: {done}/{len(ids)} frames"
+                    job_id,
+                    78 + 16 * done / len(stored),
+                    f"re-embedding: {done}/{len(stored)} frames",
                 )
 
         with self.sessions() as session:
@@ -159,12 +164,9 @@ class JobRunner:
             repo.create_model_version(
                 session,
                 atlas_id=atlas_id,
-                config={
-                    "heads": asdict(result.heads.config),
-                    "trained": True,
-                    "training": asdict(config),
-                    "job_id": job_id,
-                },
+                config=models_store.VersionConfig(
+                    result.heads.config, trained=True, training=asdict(config), job_id=job_id
+                ).to_json(),
                 metrics=metrics,
                 weights_path=str(weights.relative_to(self.settings.models_dir)),
                 activate=True,
@@ -172,7 +174,7 @@ class JobRunner:
             jobs.finish_job(
                 session,
                 job=job,
-                status="succeeded",
+                status=JobStatus.SUCCEEDED,
                 message=f"model version {version} is active",
                 metrics=metrics,
                 model_version=version,

@@ -16,12 +16,16 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from service.atlas.names import validate_name
+from service.config import Settings
 from service.errors import InvalidInput
 from service.storage import repository as repo
 from service.storage.models import Atlas, Frame
 
 RobotScope = Literal["all", "own", "others"]
 ROBOT_SCOPES: tuple[RobotScope, ...] = ("all", "own", "others")
+# The SQL LIMIT of the recent-frame exclusion is a BIGINT: larger is a bad request, not a 500.
+MAX_RECENT_FRAMES = 2**63 - 1
 
 
 @dataclass(frozen=True)
@@ -64,6 +68,8 @@ class QueryFilter:
             raise InvalidInput(f"since ({self.since}) is after until ({self.until})")
         if self.exclude_recent_frames < 0:
             raise InvalidInput("exclude_recent_frames must be 0 or more")
+        if self.exclude_recent_frames > MAX_RECENT_FRAMES:
+            raise InvalidInput(f"exclude_recent_frames must be at most {MAX_RECENT_FRAMES}")
         if not math.isfinite(self.exclude_recent_seconds) or self.exclude_recent_seconds < 0:
             raise InvalidInput("exclude_recent_seconds must be a finite number, 0 or more")
 
@@ -128,3 +134,45 @@ def recent_own_frames(session: Session, atlas_id: int, query_filter: QueryFilter
             )
             ids.update(session.scalars(window))
     return np.array(sorted(ids), np.int64)
+
+
+def make_filter(
+    settings: Settings,
+    *,
+    robot_id: str | None = None,
+    robots: str = "all",
+    submap: str | None = None,
+    since: float | None = None,
+    until: float | None = None,
+    timestamp: float | None = None,
+    exclude_recent_frames: int | None = None,
+    exclude_recent_seconds: float | None = None,
+) -> QueryFilter:
+    """A validated :class:`QueryFilter`, with the settings' recent-frame exclusion unless the
+    request overrides it (empty strings, as forms send them, mean "not given")."""
+    robot_id = robot_id or None
+    submap = submap or None
+    if robot_id is not None:
+        validate_name("robot", robot_id)
+    if submap is not None:
+        validate_name("submap", submap)
+    query_filter = QueryFilter(
+        robot_id=robot_id,
+        robots=robots,
+        submap=submap,
+        since=since,
+        until=until,
+        timestamp=timestamp,
+        exclude_recent_frames=(
+            settings.exclude_recent_frames
+            if exclude_recent_frames is None
+            else exclude_recent_frames
+        ),
+        exclude_recent_seconds=(
+            settings.exclude_recent_seconds
+            if exclude_recent_seconds is None
+            else exclude_recent_seconds
+        ),
+    )
+    query_filter.validate()
+    return query_filter

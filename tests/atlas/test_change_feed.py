@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.change_feed import ADD, changes_between, prune, record, revisions
+from service.atlas.change_feed import ADD, changes_between, prune, record, revisions
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Atlas
 from tests.api.helpers import add_frame, create_atlas

@@ -31,7 +31,7 @@ class Queue:
     def _run_job(self, job_id: int) -> None:
         """Executed in the worker: the job runner is built on first use, once per process."""
         if self._runner is None:
-            from service.retraining import JobRunner
+            from service.jobs.retraining import JobRunner
             from service.storage.db import make_engine, make_session_factory
 
             engine = make_engine(self.settings.resolved_database_url)

@@ -23,23 +23,22 @@ import io
 import json
 import logging
 import tarfile
-import tempfile
 from collections.abc import Iterable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import faiss
 import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service import __version__, models_store
-from service.atlas_service import validate_name
+from service import __version__
+from service.atlas import model_versions as models_store
+from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex
-from service.index_builder import add_stored_frames
+from service.index.builder import add_stored_frames
 from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import MIGRATIONS_DIR, transaction
@@ -191,9 +190,7 @@ def export_atlas(
         heads = models_store.load_heads(active, settings.models_dir)
         index = AtlasIndex(heads.config.fused_dim)
         add_stored_frames(session, atlas.id, heads, index)
-        with tempfile.TemporaryDirectory() as tmp:
-            index.save(Path(tmp) / "index.faiss")
-            members["index.faiss"] = (Path(tmp) / "index.faiss").read_bytes()
+        members["index.faiss"] = index.to_bytes()
         manifest = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
@@ -292,16 +289,13 @@ def _rekeyed_index(
     """The archived index under the new frame ids (None if its type cannot give vectors back:
     the service then rebuilds it from the stored features at load)."""
     try:
-        with tempfile.TemporaryDirectory() as tmp:
-            (Path(tmp) / "index.faiss").write_bytes(data)
-            source: Any = faiss.read_index(str(Path(tmp) / "index.faiss"))
-        old_ids = faiss.vector_to_array(source.id_map).astype(np.int64)
-        vectors = source.index.reconstruct_n(0, source.ntotal)
+        source = AtlasIndex.from_bytes(data)
+        old_ids, vectors = source.entries()
     except Exception as exc:
         log.warning("snapshot index not re-keyed (%s); it is rebuilt from features", exc)
         return None
     new_ids = np.array([frame_id_map[int(i)] for i in old_ids], np.int64)
-    index = AtlasIndex(int(source.d))
+    index = AtlasIndex(source.dim)
     index.add(new_ids, vectors, [robot_of[int(i)] for i in new_ids])
     return index
 

@@ -47,12 +47,12 @@ class IndexPolicy:
 
     Attributes:
         flat_max_bytes: exact search while the flat index holds at most this many bytes of
-            vectors (32 MiB: about 4 ms a query on one core of our machine; 32k frames at 256-d,
-            6k at 1408-d). A scan's cost is its bytes, so the threshold is in bytes.
+            vectors (32k frames at 256-d, 6k at 1408-d; its query time is in
+            benchmarks/RESULTS.md). A scan's cost is its bytes, so the threshold is in bytes.
         bytes_per_frame: memory budget of one frame's code in the inverted file (+ its 8-byte
             id); the finest scalar quantiser that fits is chosen (fp16, 8, 6 or 4 bits). 1500
             gives float16 codes at 256-d (520 B; 8-bit codes lose near ties there) and 8-bit
-            codes at 1408-d (1416 B; 6-bit codes fit 1.1 KB but fell to recall@1 0.947).
+            codes at 1408-d (1416 B; 6-bit codes fit but lose recall, see benchmarks/RESULTS.md).
         nprobe: inverted lists visited per query.
         train_per_list: training vectors per list (k-means sample, taken in id order).
         kmeans_iterations: k-means iterations when (re)training.
@@ -345,6 +345,23 @@ class AtlasIndex:
     @classmethod
     def load(cls, path: Path, dim: int, policy: IndexPolicy | None = None) -> AtlasIndex:
         return cls(dim, faiss.read_index(str(path)), policy)
+
+    def to_bytes(self) -> bytes:
+        """The index as the bytes of a FAISS file (what :meth:`save` writes)."""
+        with self._lock:
+            return bytes(faiss.serialize_index(self._index).tobytes())
+
+    @classmethod
+    def from_bytes(cls, data: bytes, policy: IndexPolicy | None = None) -> AtlasIndex:
+        """An index from the bytes of a FAISS file; its dimension is the file's."""
+        index = faiss.deserialize_index(np.frombuffer(data, np.uint8))
+        return cls(int(index.d), index, policy)
+
+    def entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every frame id held and its stored vector (decoded codes for the inverted file)."""
+        with self._lock:
+            ids = self.ids()
+            return ids, self._reconstruct(ids)
 
 
 def _flat(dim: int) -> Any:

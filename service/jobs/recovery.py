@@ -17,10 +17,10 @@ from datetime import timedelta
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
+from service.jobs.queue import Queue
 from service.storage import jobs
 from service.storage.db import transaction
-from service.storage.models import utcnow
-from workers.queue import Queue
+from service.storage.models import JobStatus, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ def recover_jobs(settings: Settings, sessions: sessionmaker[Session], queue: Que
     with transaction(sessions) as session:
         dead = jobs.stale_jobs(
             session,
-            status="running",
+            status=JobStatus.RUNNING,
             not_updated_since=now - timedelta(seconds=settings.job_stale_seconds),
         )
         for job in dead:
@@ -46,7 +46,7 @@ def recover_jobs(settings: Settings, sessions: sessionmaker[Session], queue: Que
                 f"the worker running it stopped (no progress for {settings.job_stale_seconds:g} s);"
                 " the active model version is unchanged: submit the job again"
             )
-            jobs.finish_job(session, job=job, status="failed", message=message)
+            jobs.finish_job(session, job=job, status=JobStatus.FAILED, message=message)
             found.failed.append(job.id)
     pending = queue.pending_job_ids()
     with sessions() as session:
@@ -54,7 +54,7 @@ def recover_jobs(settings: Settings, sessions: sessionmaker[Session], queue: Que
             job.id
             for job in jobs.stale_jobs(
                 session,
-                status="queued",
+                status=JobStatus.QUEUED,
                 not_updated_since=now - timedelta(seconds=settings.job_requeue_seconds),
             )
             if job.id not in pending

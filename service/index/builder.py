@@ -36,10 +36,9 @@ def add_stored_frames(
     for chunk in chunks:
         if chunk is not None and not chunk:
             continue
-        for ids, local, global_, _, robots in iter_stored_vectors(
-            session, atlas_id, frame_ids=chunk
-        ):
-            added += index.add(ids, embed_vectors(heads, local, global_), robots)
+        for batch in iter_stored_vectors(session, atlas_id, frame_ids=chunk):
+            embeddings = embed_vectors(heads, batch.local, batch.global_)
+            added += index.add(batch.ids, embeddings, batch.robots)
             if progress is not None:
                 progress(added)
     index.wait_rebuilt()  # a bulk build ends with the index type its size calls for

@@ -5,9 +5,9 @@ from __future__ import annotations
 import logging
 
 from service.config import Settings
+from service.jobs.queue import Queue
+from service.jobs.recovery import start_sweeper
 from service.storage.db import make_engine, make_session_factory, upgrade_database
-from workers.queue import Queue
-from workers.recovery import start_sweeper
 
 log = logging.getLogger(__name__)
 

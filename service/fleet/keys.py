@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
 from service.errors import Forbidden, InvalidInput, NotFound, Unauthorized
+from service.storage.db import transaction
 from service.storage.models import ApiKey, utcnow
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ class NewKey:
 
 
 def create_key(session: Session, *, name: str, role: Role, atlases: list[str]) -> NewKey:
-    from service.atlas_service import validate_name
+    from service.atlas.names import validate_name
 
     if not name.strip() or len(name) > 128:
         raise InvalidInput("a key's name must have 1-128 characters")
@@ -107,6 +108,22 @@ def revoke_key(session: Session, *, key_id: int) -> ApiKey:
     if key.revoked_at is None:
         key.revoked_at = utcnow()
     return key
+
+
+def issue(sessions: sessionmaker[Session], *, name: str, role: Role, atlases: list[str]) -> NewKey:
+    """Create a key in its own transaction (the API and the CLI call this)."""
+    with transaction(sessions) as session:
+        return create_key(session, name=name, role=role, atlases=atlases)
+
+
+def listing(sessions: sessionmaker[Session]) -> list[ApiKey]:
+    with sessions() as session:
+        return list_keys(session)
+
+
+def revoke(sessions: sessionmaker[Session], *, key_id: int) -> ApiKey:
+    with transaction(sessions) as session:
+        return revoke_key(session, key_id=key_id)
 
 
 class Authenticator:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from fastapi.testclient import TestClient
 
-from service.retraining import JobRunner
+from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction

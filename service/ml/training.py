@@ -329,14 +329,14 @@ def train_heads(
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
         if config.frame_weight > 0 and len(train_idx) > 1:
-            views = [
+            first, second = (
                 heads.embed(
                     _augment(local[train_idx], config, generator),
                     _augment(global_[train_idx], config, generator),
                 )
                 for _ in range(2)
-            ]
-            loss = loss + config.frame_weight * frame_loss(*views, config.frame_temperature)
+            )
+            loss = loss + config.frame_weight * frame_loss(first, second, config.frame_temperature)
         loss.backward()
         optimiser.step()
         heads.eval()

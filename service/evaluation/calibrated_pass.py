@@ -84,8 +84,17 @@ def calibrated_methods(
     ranking, search_ms = rank(calibration, refs, queries)
     cosine_top = ranking.scores[:, 0].copy()
     ranking = Ranking(ranking.indices, calibration.score(ranking.scores))
-    right = correct_matrix(ranking, [q.positives for q in dataset.queries])[:, 0]
+    main_ms = fused_extraction + embed_ms + search_ms
     describe = _describe(fitted, fit_s, embed_ms)
+    service_details: dict[str, Any] = {"ranked_by": "harness fit (no service answers)"}
+    if result.calibrated is not None:  # the service's own answers after its calibration job
+        ranking, cosine_top = result.calibrated.ranking, result.calibrated.cosines
+        main_ms = fused_extraction + result.calibrated.query_ms
+        service_details = {
+            "ranked_by": "service answers after the calibration job (score)",
+            "job": result.calibrated.job_metrics,
+        }
+    right = correct_matrix(ranking, [q.positives for q in dataset.queries])[:, 0]
     main = evaluate_ranking(
         f"loopnet-{extractor}",
         f"LoopNet {extractor_label} calibrated α={config.alpha:g} (service path)",
@@ -93,9 +102,10 @@ def calibrated_methods(
         ranking,
         dataset,
         submap_of,
-        query_ms=fused_extraction + embed_ms + search_ms,
+        query_ms=main_ms,
         details={
             **describe,
+            **service_details,
             "score": "calibrated: -log10 P(impostor cosine >= c)",
             "top1_spread": _spread(cosine_top, ranking.scores[:, 0], right),
         },

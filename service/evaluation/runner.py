@@ -30,7 +30,7 @@ from tqdm import tqdm
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
-from service.evaluation.calibrated_pass import calibrated_methods
+from service.evaluation.calibrated_pass import DEFAULT_CALIBRATION, calibrated_methods
 from service.evaluation.datasets import Dataset, load_dataset
 from service.evaluation.metrics import rank_by_similarity, summary
 from service.evaluation.protocol import (
@@ -361,6 +361,11 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             cache_dir=cache_dir,
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
+            calibration={
+                "aggregator": DEFAULT_CALIBRATION.aggregator,
+                "words": DEFAULT_CALIBRATION.words,
+                "alpha": DEFAULT_CALIBRATION.alpha,
+            },
         )
         calibrated = calibrated_methods(
             dataset,

@@ -14,7 +14,7 @@ import json
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +24,16 @@ from service.atlas.catalog import AtlasService
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
+from service.jobs.retraining import JobRunner
 from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset
 from service.runtime import Runtime
+from service.storage import jobs
 from service.storage import repository as repo
+from service.storage.db import transaction
 from service.storage.feature_store import load_calibration_inputs
 
 ATLAS = "evaluation"
@@ -67,6 +70,18 @@ class PassResult:
     signature: dict[str, object] = field(default_factory=dict)
     stored_references: CalibrationInputs | None = None
     query_local: list[LocalFeatures] = field(default_factory=list)
+    calibrated: CalibratedAnswers | None = None
+
+
+@dataclass
+class CalibratedAnswers:
+    """The service's answers once the atlas is calibrated by the calibration job's own code:
+    ranking by calibrated score, the answers' cosines, and heads + search milliseconds."""
+
+    ranking: Ranking
+    cosines: np.ndarray
+    query_ms: np.ndarray
+    job_metrics: dict[str, object]
 
 
 # ----- feature cache ----------------------------------------------------------------------
@@ -209,11 +224,13 @@ def run_service_pass(
     cache_dir: Path | None,
     label: str,
     on_features: Callable[[Path, FrameFeatures], None] | None = None,
+    calibration: dict[str, object] | None = None,
 ) -> PassResult:
     """Ingest the references into a temporary atlas, query every query image, keep the vectors.
 
     ``on_features`` sees every freshly extracted frame (the verification pass keeps its
-    keypoints, which the vector cache does not hold).
+    keypoints, which the vector cache does not hold). With ``calibration`` (a calibration job's
+    parameters), the atlas is then calibrated by the job and every query asked again.
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None and path.is_file() else None
@@ -234,10 +251,13 @@ def run_service_pass(
     query_ms: list[float] = []
     query_local: list[LocalFeatures] = []
     indices, scores = [], []
+    query_features: list[FrameFeatures] = []
 
     with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
         # Retrieval only: geometric verification has its own pass (verification_pass.py).
-        settings = Settings(data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0)
+        settings = Settings(
+            data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0, calibration_milestones=""
+        )
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)
         service = runtime.service
@@ -273,6 +293,7 @@ def run_service_pass(
                 frame_to_reference[frame.id] = i
                 continue
             query_local.append(_as_stored(features.local))
+            query_features.append(features)
             answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
             found = [frame_to_reference[c.frame_id] for c in answer.candidates]
             indices.append(found + [-1] * (k - len(found)))
@@ -282,6 +303,11 @@ def run_service_pass(
             query_ms.append(sum(stages) + answer.timings_ms["heads"] + answer.timings_ms["search"])
         if stored_references is None:  # a dataset without queries
             stored_references = _read_back(service)
+        calibrated = (
+            _calibrated_answers(service, query_features, frame_to_reference, k, calibration)
+            if calibration is not None and query_features
+            else None
+        )
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
@@ -312,6 +338,45 @@ def run_service_pass(
         signature=pipeline.signature,
         stored_references=stored_references,
         query_local=query_local,
+        calibrated=calibrated,
+    )
+
+
+def _calibrated_answers(
+    service: AtlasService,
+    queries: Sequence[FrameFeatures],
+    frame_to_reference: dict[int, int],
+    k: int,
+    params: dict[str, object],
+) -> CalibratedAnswers:
+    """Calibrate the atlas as the service does (a calibration job run by the job runner on the
+    stored references), then ask every query again through the service."""
+    with transaction(service.sessions) as session:
+        atlas_id = repo.get_atlas(session, name=ATLAS).id
+        job_id = jobs.create_job(session, atlas_id=atlas_id, kind="calibrate", params=params).id
+    JobRunner(service.settings, service.sessions).run(job_id)
+    with service.sessions() as session:
+        job = jobs.get_job(session, job_id=job_id)
+        if job.status != "succeeded":
+            raise RuntimeError(f"the calibration job failed: {job.error}")
+        metrics = dict(job.metrics)
+    service.refresh(atlas_id)
+    indices, scores, cosines, query_ms = [], [], [], []
+    for features in queries:
+        # descriptors rounded as the feature cache holds them: a rerun answers the same
+        features = replace(features, local=_as_stored(features.local))
+        answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
+        found = [frame_to_reference[c.frame_id] for c in answer.candidates]
+        pad = k - len(found)
+        indices.append(found + [-1] * pad)
+        scores.append([float(c.score or 0.0) for c in answer.candidates] + [-np.inf] * pad)
+        cosines.append(answer.candidates[0].similarity if answer.candidates else -1.0)
+        query_ms.append(answer.timings_ms["heads"] + answer.timings_ms["search"])
+    return CalibratedAnswers(
+        Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
+        np.array(cosines, np.float64),
+        np.array(query_ms, np.float64),
+        metrics,
     )
 
 

@@ -39,6 +39,7 @@ from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
+from service.ml.active_model import ActiveModel
 from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import MIGRATIONS_DIR, transaction
@@ -184,12 +185,21 @@ def export_atlas(
                 weights = weights if weights.is_absolute() else settings.models_dir / weights
                 row["weights"] = f"models/v{version.version}.pt"
                 members[row["weights"]] = weights.read_bytes()
+            calibration = models_store.VersionConfig.of(version).calibration
+            if calibration is not None:
+                path = Path(calibration["path"])
+                path = path if path.is_absolute() else settings.models_dir / path
+                row["calibration_file"] = f"models/v{version.version}-calibration.npz"
+                members[row["calibration_file"]] = path.read_bytes()
             version_rows.append(row)
         members["model_versions.jsonl"] = _jsonl(version_rows)
         active = repo.active_model_version(session, atlas_id=atlas.id)
-        heads = models_store.load_heads(active, settings.models_dir)
-        index = AtlasIndex(heads.config.fused_dim)
-        add_stored_frames(session, atlas.id, heads, index)
+        model = ActiveModel(
+            models_store.load_heads(active, settings.models_dir),
+            models_store.load_calibration(active, settings.models_dir),
+        )
+        index = AtlasIndex(model.dim)
+        add_stored_frames(session, atlas.id, model, index)
         members["index.faiss"] = index.to_bytes()
         manifest = {
             "format": FORMAT,
@@ -348,6 +358,16 @@ def restore_atlas(
                     target.write_bytes(members[row["weights"]])
                     written.append(target)
                     weights_path = str(target.relative_to(settings.models_dir))
+                if row.get("calibration_file") is not None:
+                    target = models_store.calibration_file(
+                        settings.models_dir, atlas.id, int(row["version"])
+                    )
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    target.write_bytes(members[row["calibration_file"]])
+                    written.append(target)
+                    row["config"]["calibration"]["path"] = str(
+                        target.relative_to(settings.models_dir)
+                    )
                 session.add(
                     ModelVersion(
                         atlas_id=atlas.id,

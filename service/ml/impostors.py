@@ -22,6 +22,21 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def sequence_positions(
+    robots: Sequence[str], order: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: its robot's code, its rank in that robot's sequence, and the gap (a
+    twentieth of the robot's frames, at least 5) beyond which two of its frames are taken for
+    different places."""
+    codes = np.unique(np.asarray(robots), return_inverse=True)[1].reshape(-1)
+    rank = np.empty(len(codes), np.int64)
+    sizes = np.bincount(codes)
+    for code in range(len(sizes)):
+        members = np.flatnonzero(codes == code)
+        rank[members[np.argsort(order[members], kind="stable")]] = np.arange(len(members))
+    return codes, rank, np.maximum(5, sizes // 20)[codes]
+
+
 def impostor_pairs(
     robots: Sequence[str],
     order: np.ndarray,
@@ -41,13 +56,9 @@ def impostor_pairs(
     n = len(robots)
     if n < 2:
         raise ValueError(f"impostor pairs need at least 2 frames, got {n}")
-    codes = np.unique(np.asarray(robots), return_inverse=True)[1].reshape(-1)
-    rank = np.empty(n, np.int64)
-    sizes = np.bincount(codes)
-    for code in range(len(sizes)):
-        members = np.flatnonzero(codes == code)
-        rank[members[np.argsort(order[members], kind="stable")]] = np.arange(len(members))
-    gap = np.maximum(5, sizes // 20)[codes] if min_gap is None else np.full(n, min_gap, np.int64)
+    codes, rank, gap = sequence_positions(robots, order)
+    if min_gap is not None:
+        gap = np.full(n, min_gap, np.int64)
     rng = np.random.default_rng(seed)
     if first_from is None:
         first, second = rng.integers(0, n, size=(2, pairs * 2))
@@ -141,3 +152,24 @@ class ImpostorModel:
             tail_scale=float(tail[2]),
             pairs=int(tail[3]),
         )
+
+
+def impostor_model_of(
+    embeddings: np.ndarray,
+    robots: Sequence[str],
+    order: np.ndarray,
+    *,
+    pairs: int = 100_000,
+    seed: int = 0,
+) -> ImpostorModel:
+    """The impostor model of unit ``embeddings`` (pairs far apart in their robot's sequence):
+    refitted when trained heads change what a cosine means."""
+    first, second = impostor_pairs(robots, np.asarray(order), pairs=pairs, seed=seed)
+    step = 16_384
+    cosines = np.concatenate(
+        [
+            np.einsum("ij,ij->i", embeddings[first[i : i + step]], embeddings[second[i : i + step]])
+            for i in range(0, len(first), step)
+        ]
+    )
+    return ImpostorModel.fit(cosines)

@@ -43,8 +43,9 @@ class Settings(BaseSettings):
     loop_score_min: float = Field(
         3.0,
         ge=0.0,
-        description="Calibrated score (-log10 of the atlas's impostor tail probability) at or "
-        "above which a match is a loop, on calibrated model versions.",
+        description="On calibrated model versions: -log10 of the chance that a query with no "
+        "true revisit finds a match this good among the atlas's frames (a match is a loop from "
+        "score >= this + log10(frames)).",
     )
     calibration_milestones: str = Field(
         "100,1000,10000,100000",

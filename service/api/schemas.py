@@ -156,8 +156,10 @@ class QueryOut(BaseModel):
     verification: VerificationOut
     score_threshold: float | None = Field(
         None,
-        description="The calibrated score the match had to reach for a loop closure; null when "
-        "the model version is not calibrated and the similarity threshold decided.",
+        description="The calibrated score the match had to reach for a loop closure "
+        "(LOOPNET_LOOP_SCORE_MIN + log10 of the frames in the atlas: the best of N impostors is N "
+        "times likelier to pass); null when the model version is not calibrated and the "
+        "similarity threshold decided.",
     )
 
 

@@ -7,6 +7,7 @@ filter, searches and reads the candidates and their stored keypoints for verific
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 
@@ -210,8 +211,12 @@ class AtlasQueries:
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         enabled = self.verification.enabled
-        # calibrated versions decide on the score (one meaning on every atlas), others on cosine
-        score_threshold = self.settings.loop_score_min if scores is not None else None
+        # calibrated versions decide on the score, others on the cosine
+        score_threshold = (
+            loop_score_threshold(self.settings.loop_score_min, state.index.size)
+            if scores is not None
+            else None
+        )
         evidence = None
         if match is not None:
             evidence = match.similarity if score_threshold is None else match.score
@@ -281,6 +286,14 @@ class AtlasQueries:
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
         return Found(candidates, frames, names, stored)
+
+
+def loop_score_threshold(score_min: float, frames: int) -> float:
+    """The score the best of ``frames`` candidates must reach so that a query with no true
+    revisit passes with probability ``10**-score_min`` at most: each impostor pair passes score
+    ``s`` with probability ``10**-s`` (the calibration's meaning), the best of ``frames`` about
+    ``frames`` times as often. One setting then means the same on small and large atlases."""
+    return round(score_min + math.log10(max(frames, 1)), 4)
 
 
 def with_extraction_timings(

@@ -187,10 +187,10 @@ def export_atlas(
                 members[row["weights"]] = weights.read_bytes()
             calibration = models_store.VersionConfig.of(version).calibration
             if calibration is not None:
-                path = Path(calibration["path"])
-                path = path if path.is_absolute() else settings.models_dir / path
+                fitted = Path(calibration["path"])
+                fitted = fitted if fitted.is_absolute() else settings.models_dir / fitted
                 row["calibration_file"] = f"models/v{version.version}-calibration.npz"
-                members[row["calibration_file"]] = path.read_bytes()
+                members[row["calibration_file"]] = fitted.read_bytes()
             version_rows.append(row)
         members["model_versions.jsonl"] = _jsonl(version_rows)
         active = repo.active_model_version(session, atlas_id=atlas.id)

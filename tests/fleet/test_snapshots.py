@@ -240,3 +240,49 @@ def test_snapshot_over_http_round_trips(tmp_path: Path, pipeline) -> None:  # ty
         assert (
             junk.status_code == 422 and "not a readable snapshot archive" in junk.json()["detail"]
         )
+
+
+def test_a_calibrated_atlas_round_trips_with_its_calibration(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    settings = make_settings(tmp_path / "data", verify_top=0)
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+        create_atlas(client, submaps=("s0",))
+        for i in range(10):
+            add_frame(client, gardens_point_day_night(i, "ref"), robot="robot-a")
+        for i in (0, 9):
+            add_frame(client, gardens_point_day_night(i, "query"), robot="robot-b")
+        service = client.app.state.runtime.service  # type: ignore[attr-defined]
+        with transaction(service.sessions) as session:
+            atlas_id = repo.get_atlas(session, name="campus").id
+            job_id = jobs.create_job(
+                session, atlas_id=atlas_id, kind="calibrate", params={"words": 8}
+            ).id
+        JobRunner(settings, service.sessions).run(job_id)
+        assert client.get("/v1/atlases/campus").json()["calibration"]["state"] == "calibrated"
+        download = client.get("/v1/atlases/campus/snapshot")
+        assert download.status_code == 200
+        restored = client.post(
+            "/v1/snapshots?name=copy", files={"archive": ("s.tar", download.content)}
+        )
+        assert restored.status_code == 201, restored.text
+        summary = client.get("/v1/atlases/copy").json()
+        assert summary["calibration"] == client.get("/v1/atlases/campus").json()["calibration"]
+        assert answers(client, "copy") == answers(client, "campus")
+        scores = [
+            client.post(
+                f"/v1/atlases/{atlas}/query",
+                data={"k": "3"},
+                files={"image": ("q.jpg", gardens_point_day_night(4, "query"))},
+            ).json()["match"]["score"]
+            for atlas in ("campus", "copy")
+        ]
+        assert scores[0] is not None and scores[0] == scores[1]
+        # the copy's calibration is its own file, not the source atlas's
+        paths = [
+            client.get(f"/v1/atlases/{atlas}/models").json()[-1]["config"]["calibration"]["path"]
+            for atlas in ("campus", "copy")
+        ]
+        assert paths[0] != paths[1]
+        assert (settings.models_dir / paths[1]).read_bytes() == (
+            settings.models_dir / paths[0]
+        ).read_bytes()

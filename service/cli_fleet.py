@@ -57,7 +57,7 @@ def _key_row(key: Any) -> dict[str, Any]:
         "id": key.id,
         "name": key.name,
         "role": key.role,
-        "atlases": key.atlases or ["*"],
+        "atlases": list(key.atlases),  # as the API shows them: empty means every atlas
         "prefix": key.prefix,
         "created_at": key.created_at.isoformat(),
         "revoked_at": key.revoked_at.isoformat() if key.revoked_at else None,
@@ -122,7 +122,7 @@ def cmd_snapshot_export(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_restore(args: argparse.Namespace) -> int:
-    from service.fleet.snapshots import restore_atlas
+    from service.fleet.snapshot_restore import restore_atlas
 
     def action() -> None:
         settings, sessions = _sessions()

@@ -8,16 +8,17 @@ loaded state of every atlas; the work itself lives in :mod:`service.atlas.state`
 
 from __future__ import annotations
 
-import shutil
 from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import model_versions as models_store
+from service.atlas import reads
 from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameIngest
 from service.atlas.names import validate_name
 from service.atlas.query import AtlasQueries
+from service.atlas.reads import unavailable_atlases
 from service.atlas.results import QueryResult
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification, verification_config
@@ -53,6 +54,7 @@ class AtlasService:
         self.queries = AtlasQueries(settings, sessions, self.states, self.frames, self.verification)
         # what the follower thread, the tests and the CLI reach through the facade
         self._loaded = self.states.loaded_states
+        self.broken = self.states.broken
         self.loaded = self.states.loaded
         self.refresh = self.states.refresh
         self.follow = self.states.follow
@@ -75,7 +77,7 @@ class AtlasService:
                 session,
                 name=name,
                 description=description,
-                feature_signature=self.pipeline.signature,
+                feature_signature=self.pipeline.signature.to_json(),
             )
             repo.create_model_version(
                 session,
@@ -100,9 +102,11 @@ class AtlasService:
             atlas_id = atlas.id
             session.delete(atlas)
         self.states.forget(atlas_id)
-        for path in self.settings.index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
-            path.unlink(missing_ok=True)
-        shutil.rmtree(self.settings.models_dir / f"atlas-{atlas_id}", ignore_errors=True)
+        models_store.remove_atlas_files(self.settings.index_dir, self.settings.models_dir, atlas_id)
+
+    def unavailable_atlases(self) -> dict[str, str]:
+        """Atlas name -> why it cannot be loaded (served with 503 while the others serve)."""
+        return unavailable_atlases(self.sessions, self.states.broken.reasons())
 
     def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
         """Make a model version the active one; this process serves it at once, the others
@@ -112,6 +116,10 @@ class AtlasService:
             activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
         self.states.refresh(found.id)
         return activated
+
+    def served_indexes(self) -> list[reads.ServedIndex]:
+        """What this process serves: each loaded atlas's index size and change-feed lag."""
+        return reads.served_indexes(self.sessions, self.states.serving())
 
     def rebuild_index(self, atlas_name: str) -> int:
         """Re-embed every frame of an atlas from stored features into a fresh index file."""

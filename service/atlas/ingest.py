@@ -21,10 +21,12 @@ from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.jobs.milestones import calibration_due
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
+from service.ml.thumbnails import make_thumbnail
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame
@@ -61,10 +63,11 @@ class FrameIngest:
     def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
         """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
         atlas = repo.get_atlas(session, name=atlas_name)
-        if atlas.feature_signature != self.pipeline.signature:
+        if not self.pipeline.signature.matches(atlas.feature_signature):
             raise Conflict(
                 f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
-                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+                f"extracts {self.pipeline.signature.to_json()}; run the service with the atlas's "
+                "preset"
             )
         return atlas
 
@@ -76,6 +79,8 @@ class FrameIngest:
             rgb = decode_image(image_bytes, self.settings.image_limits)
             decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
+            features.thumbnail = make_thumbnail(rgb)
+        observe_stages({"decode": decode_ms, **features.timings_ms})
         return features, decode_ms
 
     def ingest_frame(

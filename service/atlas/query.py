@@ -27,6 +27,7 @@ from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.verification import Verification, View, decide, rerank
@@ -208,6 +209,7 @@ class AtlasQueries:
             )
         else:
             guess = SubmapGuess(True, found.names.get(prediction.submap_id), prediction.probability)
+        observe_stages(timings)
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         enabled = self.verification.enabled
@@ -305,4 +307,5 @@ def with_extraction_timings(
         **result.timings_ms,
         "total": round((time.perf_counter() - total_start) * 1000.0, 3),
     }
+    result.query_thumbnail = features.thumbnail
     return result

@@ -54,6 +54,7 @@ class QueryResult:
         default_factory=lambda: VerificationSummary(enabled=False)
     )
     score_threshold: float | None = None  # set when the decision used the calibrated score
+    query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

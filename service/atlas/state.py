@@ -4,6 +4,7 @@ change feed of frames other processes add or remove."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -15,8 +16,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import change_feed
 from service.atlas import model_versions as models_store
+from service.atlas.broken_atlases import BrokenAtlases
 from service.config import Settings
-from service.errors import NotFound
+from service.errors import AtlasUnavailable, NotFound
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
 from service.ml.active_model import ActiveModel
@@ -59,13 +61,17 @@ class AtlasStates:
         # Per atlas: held while its state is swapped and while a new frame enters its index,
         # so a frame committed around a swap always ends up in the index that is served.
         self._atlas_locks: dict[int, threading.RLock] = {}
+        # Atlases that failed to load: they answer 503 while the others serve.
+        self.broken = BrokenAtlases(max(settings.model_poll_seconds, 1.0), settings.data_dir)
 
     def load_all(self) -> None:
-        """Load heads and reconcile the index of every atlas (at start-up)."""
+        """Load heads and reconcile the index of every atlas (at start-up); an atlas that
+        cannot be loaded is left out and reported (see :class:`BrokenAtlases`)."""
         with self.sessions() as session:
             atlas_ids = [a.id for a in repo.list_atlases(session)]
         for atlas_id in atlas_ids:
-            self.loaded(atlas_id)
+            with contextlib.suppress(AtlasUnavailable):  # reported by self.broken
+                self.loaded(atlas_id)
 
     def lock(self, atlas_id: int) -> threading.RLock:
         with self._loaded_lock:
@@ -75,6 +81,11 @@ class AtlasStates:
         """The state in memory now, if any (never loads)."""
         with self._loaded_lock:
             return self.loaded_states.get(atlas_id)
+
+    def serving(self) -> list[LoadedAtlas]:
+        """The states this process serves now (a snapshot; never loads)."""
+        with self._loaded_lock:
+            return list(self.loaded_states.values())
 
     def forget(self, atlas_id: int) -> None:
         with self._loaded_lock:
@@ -92,7 +103,7 @@ class AtlasStates:
             current = self.current(atlas_id)
             if current is not None and current is not state:
                 return current  # another thread swapped meanwhile
-            new = self._load(atlas_id)
+            new = self.broken.load(atlas_id, lambda: self._load(atlas_id))
             if state is not None:
                 log.info(
                     "atlas %d: now serving model version %d (was %d)",

@@ -31,7 +31,8 @@ from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
 from service.evaluation.calibrated_pass import DEFAULT_CALIBRATION, calibrated_methods
-from service.evaluation.datasets import Dataset, load_dataset
+from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
+from service.evaluation.image_check import unreadable_images
 from service.evaluation.metrics import rank_by_similarity, summary
 from service.evaluation.protocol import (
     MethodResult,
@@ -80,6 +81,8 @@ class EvalConfig:
             extractor's ranking adds a row each; empty: none.
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
+        precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
+            precision are reused in another, so give each its own ``cache_dir``.
     """
 
     dataset: Path
@@ -107,6 +110,7 @@ class EvalConfig:
     verify: tuple[str, ...] = ()
     verify_top: int = 5
     query_stride: int = 1
+    precision: str = "fp32"
 
 
 @dataclass
@@ -317,10 +321,16 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     if config.limit:
         dataset = dataset.head(config.limit)
     dataset = subsample_queries(dataset, config.query_stride)
-    submap_of, submap_note = assign_submaps(dataset, config.submap_size)
     output = Path(config.output)
     output.mkdir(parents=True, exist_ok=True)
     cache_dir = config.cache_dir or output / "cache"
+    unreadable = unreadable_images(all_images(dataset), cache_dir)
+    for path, why in unreadable.items():
+        log.warning("skipping %s: %s", path, why)
+    dataset = dataset.without(unreadable)
+    if not dataset.references or not dataset.queries:
+        raise DatasetError(f"{dataset.root}: no readable references or queries left")
+    submap_of, submap_note = assign_submaps(dataset, config.submap_size)
     log.info(
         "%s (%s): %d references, %d queries; %s",
         dataset.name,
@@ -336,6 +346,30 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     skipped: dict[str, str] = {}
     first_pass: PassResult | None = None
     first_keypoints: KeypointCache | None = None
+    retraining: list[RetrainingRow] = []
+
+    def report_so_far(partial: str | None) -> dict[str, Any]:
+        assert first_pass is not None
+        return _report(
+            config,
+            dataset,
+            submap_note,
+            first_pass,
+            methods + global_only,
+            stages,
+            skipped,
+            retraining,
+            unreadable,
+            partial,
+        )
+
+    def checkpoint(next_step: str) -> None:
+        """Write the rows done so far (no plots): a run stopped later keeps them."""
+        if first_pass is not None:
+            report = report_so_far(f"stopped before {next_step}")
+            reporting.write_json(report, output / "report.json")
+            reporting.write_markdown(report, methods + global_only, output / "report.md")
+
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -345,7 +379,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             max_keypoints=config.max_keypoints,
         )
         try:
-            pipeline = FeaturePipeline(preset)
+            pipeline = FeaturePipeline(preset, config.precision)
         except WeightsUnavailable as exc:
             skipped[extractor] = str(exc)
             log.warning("skipping %s: %s", extractor, exc)
@@ -387,10 +421,11 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         }
         if first_pass is None:
             first_pass, first_keypoints = result, keypoints
+        checkpoint("the next extractor's pass")
     if first_pass is None:
         raise RuntimeError(f"no local extractor could run: {skipped}")
     methods += global_only
-    retraining: list[RetrainingRow] = []
+    global_only = []
     if config.retrain_shots:
         extractor = config.extractors[0]
         retraining = retraining_rows(
@@ -404,6 +439,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
         )
         methods += [row.after for row in retraining]
+        checkpoint("verification and baselines")
     if config.verify and first_keypoints is not None:
         extractor_name = first_pass.preset.local.name
         verified, verification_stages = verification_methods(
@@ -419,19 +455,40 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         )
         methods += verified
         stages.update(verification_stages)
+        checkpoint("the baselines")
     for name in config.baselines:
         method, baseline_stages = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k
         )
         methods.append(method)
         stages[method.label] = baseline_stages
+        checkpoint("the remaining baselines and the plots")
 
+    report = report_so_far(None)
+    _write_final(config, dataset, methods, report)
+    return EvalResult(report, methods, retraining)
+
+
+def _report(
+    config: EvalConfig,
+    dataset: Dataset,
+    submap_note: str,
+    first_pass: PassResult,
+    methods: list[MethodResult],
+    stages: dict[str, dict[str, dict[str, float]]],
+    skipped: dict[str, str],
+    retraining: list[RetrainingRow],
+    unreadable: dict[Path, str],
+    partial: str | None,
+) -> dict[str, Any]:
+    """The report of the rows done so far (``partial`` says what is still missing)."""
     answerable = sum(1 for q in dataset.queries if q.positives)
     tolerance_text = (
         f"±{dataset.tolerance} frames" if dataset.tolerance is not None else dataset.ground_truth
     )
     report: dict[str, Any] = {
         "command": config.command or "run_evaluation(...)",
+        "partial": partial,
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
         "dataset": {
             "name": dataset.name,
@@ -444,6 +501,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             "tolerance": dataset.tolerance,
             "tolerance_text": tolerance_text,
             "excluded": dataset.excluded,
+            "unreadable_images": {str(path): why for path, why in unreadable.items()},
         },
         "protocol": {
             "submaps": submap_note,
@@ -479,6 +537,15 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         "target": _target(methods),
         "retraining": [row.row() for row in retraining],
     }
+    return report
+
+
+def _write_final(
+    config: EvalConfig, dataset: Dataset, methods: list[MethodResult], report: dict[str, Any]
+) -> None:
+    """The plots, then report.json and report.md in full."""
+    output = Path(config.output)
+    tolerance_text = report["dataset"]["tolerance_text"]
     title = f"{dataset.name}: loop-closure precision-recall ({tolerance_text})"
     reporting.plot_pr_curves(methods, title, output / reporting.PR_PLOT)
     report["examples"] = reporting.plot_examples(
@@ -486,7 +553,6 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     )
     reporting.write_json(report, output / "report.json")
     reporting.write_markdown(report, methods, output / "report.md")
-    return EvalResult(report, methods, retraining)
 
 
 def command_line(argv: Sequence[str]) -> str:

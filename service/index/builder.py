@@ -10,6 +10,7 @@ from service.index import AtlasIndex
 from service.ml.active_model import ActiveModel
 from service.ml.calibration import Calibration
 from service.ml.pipeline import embed_vectors
+from service.ml.precision import resolve_precision
 from service.storage.feature_store import (
     StoredVectors,
     concat_vectors,
@@ -62,14 +63,17 @@ def add_stored_frames(
     *,
     frame_ids: Sequence[int] | None = None,
     progress: Callable[[int], None] | None = None,
+    precision: str = "fp32",
 ) -> int:
     """Embed the atlas's stored frames (all, or ``frame_ids``) and add them to ``index``.
 
-    Returns how many frames were added; ``progress`` gets the running count.
+    Returns how many frames were added; ``progress`` gets the running count. ``precision``
+    ("auto", "fp32", "bf16") is the embedding's matrix arithmetic (see ``embed_vectors``).
     """
+    resolved = resolve_precision(precision)
     added = 0
     for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=frame_ids):
-        embeddings = embed_vectors(model.heads, batch.local, batch.global_)
+        embeddings = embed_vectors(model.heads, batch.local, batch.global_, resolved)
         added += index.add(batch.ids, embeddings, batch.robots)
         if progress is not None:
             progress(added)

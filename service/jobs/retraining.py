@@ -41,7 +41,7 @@ from service.ml.training import (
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.models import JobStatus
+from service.storage.models import Atlas, Job, JobStatus
 
 log = logging.getLogger(__name__)
 
@@ -56,14 +56,21 @@ class JobRunner:
         self.sessions = sessions
 
     def run(self, job_id: int) -> None:
+        """Run the job and log one line with its id, atlas and outcome."""
         with transaction(self.sessions) as session:
             job = jobs.start_job(session, job_id=job_id)
             if job is None:
-                log.info("job %d is not queued any more; skipped", job_id)
+                found = session.get(Job, job_id)
+                status = found.status if found else "unknown"
+                log.info("job %d: not run, it is %s", job_id, status)
                 return
             kind, atlas_id, params = job.kind, job.atlas_id, dict(job.params)
+            atlas = session.get(Atlas, atlas_id)
+            atlas_name = atlas.name if atlas else f"#{atlas_id}"
+        log.info("job %d (%s of atlas '%s'): started", job_id, kind, atlas_name)
         if kind not in ("retrain", "calibrate"):
             self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
+            log.error("job %d (atlas '%s'): failed, unknown kind %r", job_id, atlas_name, kind)
             return
         files: list[Any] = []
         try:
@@ -74,14 +81,20 @@ class JobRunner:
         except TrainingCancelled as exc:
             self._cleanup(files)
             self._finish(job_id, JobStatus.CANCELLED, str(exc))
+            log.info("job %d (atlas '%s'): cancelled (%s)", job_id, atlas_name, exc)
         except Exception as exc:
-            log.exception("job %d failed", job_id)
+            log.exception("job %d (atlas '%s'): failed", job_id, atlas_name)
             self._cleanup(files)
             self._finish(
                 job_id, JobStatus.FAILED, f"{type(exc).__name__}: {exc}", traceback.format_exc()
             )
         else:
-            log.info("job %d: model version %d of atlas %d recorded", job_id, version, atlas_id)
+            log.info(
+                "job %d (atlas '%s'): succeeded, model version %d recorded",
+                job_id,
+                atlas_name,
+                version,
+            )
 
     def _progress(self, job_id: int, percent: float, message: str) -> bool:
         with transaction(self.sessions) as session:
@@ -100,12 +113,7 @@ class JobRunner:
             path.unlink(missing_ok=True)
 
     def _retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
-        config = TrainingConfig(
-            **{
-                **params,
-                "train": tuple(params.get("train", ("fusion", "similarity", "classifier"))),
-            }
-        )
+        config = TrainingConfig(**params)
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)
@@ -117,6 +125,7 @@ class JobRunner:
         if len(stored) == 0:
             raise ValueError("the atlas has no frames to train on")
         base = active_config.heads
+        config.check_fits(base)
         base = HeadsConfig(
             local_dim=base.local_dim,
             global_dim=base.global_dim,
@@ -244,6 +253,8 @@ class JobRunner:
                     job_id, 78 + 16 * done / max(frames, 1), f"re-embedding: {done}/{frames} frames"
                 )
 
+        # fp32 like ingest, restore and reconcile: a frame's vector must not depend on which path
+        # embedded it (bf16 re-embedding is in the benchmarks, not in the service)
         with self.sessions() as session:
             add_stored_frames(session, atlas_id, model, index, progress=on_chunk)
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)

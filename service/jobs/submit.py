@@ -1,8 +1,10 @@
 """Submitting, listing and cancelling jobs: the rules the API and the CLI share.
 
-A job is validated (a retraining's parameters build a training config and the atlas has frames
-in two submaps; a calibration's build a calibration config and the atlas has enough frames), created, then enqueued; when the queue is unreachable the job is failed at once so
-nothing waits forever for a worker that will never see it.
+A job is validated (a retraining's parameters build a training config whose ``embed_dim`` the
+atlas's active heads can fill, and the atlas has frames in two submaps; a calibration's build a
+calibration config and the atlas has enough frames), created, then enqueued; when the queue is
+unreachable the job is failed at once so nothing waits forever for a worker that will never see
+it.
 """
 
 from __future__ import annotations
@@ -10,8 +12,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from pydantic import ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas.model_versions import VersionConfig
 from service.errors import InvalidInput, NotReady
 from service.jobs.calibration import MIN_FRAMES, calibration_config
 from service.jobs.queue import Queue
@@ -24,16 +28,32 @@ from service.storage.models import Job, JobStatus
 JOB_KINDS = ("retrain", "calibrate")
 
 
-def check_params(kind: str, params: dict[str, Any]) -> None:
-    """Refuse parameters the job would refuse (422 before anything is written)."""
-    try:
-        if kind == "calibrate":
+def check_params(kind: str, params: dict[str, Any]) -> TrainingConfig | None:
+    """Refuse parameters the job would refuse (422 before anything is written); a retraining's
+    training config, to check against the atlas (None for a calibration)."""
+    if kind == "calibrate":
+        try:
             calibration_config(params)
-        elif kind == "retrain":
-            TrainingConfig(**{**params, "train": tuple(params["train"])})
-        else:
-            raise ValueError(f"unknown job kind {kind!r}; choose one of {list(JOB_KINDS)}")
-    except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError) as exc:
+            raise InvalidInput(str(exc)) from exc
+        return None
+    if kind != "retrain":
+        raise InvalidInput(f"unknown job kind {kind!r}; choose one of {list(JOB_KINDS)}")
+    try:
+        return TrainingConfig(**params)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors()
+        )
+        raise InvalidInput(f"invalid job parameters: {problems}") from exc
+
+
+def check_fits(session: Session, config: TrainingConfig, *, atlas_id: int) -> None:
+    """Refuse a config the worker would fail on with the atlas's active heads (422 at submit)."""
+    active = repo.active_model_version(session, atlas_id=atlas_id)
+    try:
+        config.check_fits(VersionConfig.of(active).heads)
+    except ValueError as exc:
         raise InvalidInput(str(exc)) from exc
 
 
@@ -57,9 +77,11 @@ def submit_job(
     sessions: sessionmaker[Session], queue: Queue, *, atlas: str, kind: str, params: dict[str, Any]
 ) -> Job:
     """Validate, create and enqueue a job; returns it as it stands once enqueued."""
-    check_params(kind, params)
+    config = check_params(kind, params)
     with transaction(sessions) as session:
         found = repo.get_atlas(session, name=atlas)
+        if config is not None:
+            check_fits(session, config, atlas_id=found.id)
         check_atlas_ready(session, found.id, atlas, kind)
         job = jobs.create_job(session, atlas_id=found.id, kind=kind, params=params)
     enqueue_or_fail(sessions, queue.enqueue, job.id)

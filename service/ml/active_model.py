@@ -38,7 +38,8 @@ class ActiveModel:
 
     def embed(self, features: FrameFeatures) -> np.ndarray:
         """The unit embedding of one extracted frame (ingest and query)."""
-        return embed_vectors(self.heads, *self.inputs(features))[0]
+        row: np.ndarray = embed_vectors(self.heads, *self.inputs(features))[0]
+        return row
 
     def predict_submap(self, features: FrameFeatures) -> SubmapPrediction | None:
         local, global_ = self.inputs(features)

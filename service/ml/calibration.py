@@ -19,7 +19,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -207,7 +207,10 @@ class Calibration:
 
     def embed(self, local: LocalFeatures, global_vector: np.ndarray) -> np.ndarray:
         """The fused unit embedding of one frame (ingest and query)."""
-        return self.embed_many([local.descriptors], [local.scores], global_vector[None])[0]
+        row: np.ndarray = self.embed_many([local.descriptors], [local.scores], global_vector[None])[
+            0
+        ]
+        return row
 
     def score(self, cosines: np.ndarray | float) -> np.ndarray:
         """The calibrated score of fused cosines (see :mod:`service.ml.impostors`)."""
@@ -246,11 +249,12 @@ class Calibration:
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: Path) -> Calibration:
+    def load(cls, path: Path | BinaryIO) -> Calibration:
+        """A saved calibration, from its file or a stream of its bytes (never unpickled)."""
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             if meta.get("format") != FORMAT_VERSION:
-                raise ValueError(f"{path}: unsupported calibration format {meta.get('format')}")
+                raise ValueError(f"unsupported calibration format {meta.get('format')}")
 
             def part(prefix: str) -> dict[str, np.ndarray]:
                 return {

@@ -12,7 +12,7 @@ from service.errors import Conflict, NotFound
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.storage.feature_store import to_row
-from service.storage.models import Atlas, Frame, ModelVersion, Submap
+from service.storage.models import Atlas, Frame, FrameThumbnail, ModelVersion, Submap
 
 
 def create_atlas(
@@ -37,7 +37,10 @@ def get_atlas(session: Session, *, name: str) -> Atlas:
 
 
 def list_atlases(session: Session) -> list[Atlas]:
-    return list(session.scalars(select(Atlas).order_by(Atlas.name)))
+    """Every atlas but those a snapshot restore is still writing (named with a leading '.',
+    which atlas names cannot start with)."""
+    query = select(Atlas).where(~Atlas.name.startswith(".")).order_by(Atlas.name)
+    return list(session.scalars(query))
 
 
 def count_frames(session: Session, *, atlas_id: int, submap_id: int | None = None) -> int:
@@ -126,6 +129,8 @@ def add_frame(
     session.add(frame)
     session.flush()
     session.add(to_row(frame.id, features))
+    if features.thumbnail is not None:
+        session.add(FrameThumbnail(frame_id=frame.id, jpeg=features.thumbnail))
     session.flush()
     return frame
 

@@ -47,6 +47,7 @@ from service.evaluation.verification_pass import (
     subsample_queries,
     verification_methods,
 )
+from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset, resolve_preset
@@ -233,7 +234,9 @@ def _baseline_method(
 
 
 def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
-    loopnet = next(m for m in methods if m.kind == "loopnet")
+    loopnet = next((m for m in methods if m.kind == "loopnet"), None)
+    if loopnet is None:
+        return {"verdict": "no calibrated LoopNet row ran", "met": None}
     rivals = [
         m
         for m in methods
@@ -370,6 +373,14 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             reporting.write_json(report, output / "report.json")
             reporting.write_markdown(report, methods + global_only, output / "report.md")
 
+    # the calibrated rows need as many references as a calibration job does
+    calibrates = len(dataset.references) >= CALIBRATION_MIN_FRAMES
+    if not calibrates:
+        log.warning(
+            "no calibrated rows: %d references, a calibration needs %d",
+            len(dataset.references),
+            CALIBRATION_MIN_FRAMES,
+        )
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -399,17 +410,23 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
                 "aggregator": DEFAULT_CALIBRATION.aggregator,
                 "words": DEFAULT_CALIBRATION.words,
                 "alpha": DEFAULT_CALIBRATION.alpha,
-            },
+            }
+            if calibrates
+            else None,
         )
-        calibrated = calibrated_methods(
-            dataset,
-            submap_of,
-            extractor,
-            EXTRACTOR_LABELS.get(extractor, extractor),
-            result,
-            alphas=config.alphas,
-            k=config.k,
-            with_global_only=first_pass is None,
+        calibrated = (
+            calibrated_methods(
+                dataset,
+                submap_of,
+                extractor,
+                EXTRACTOR_LABELS.get(extractor, extractor),
+                result,
+                alphas=config.alphas,
+                k=config.k,
+                with_global_only=first_pass is None,
+            )
+            if calibrates
+            else []
         )
         uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None

@@ -43,6 +43,24 @@ class Settings(BaseSettings):
     verify_top: int = Field(
         5, ge=0, le=100, description="Best retrieval candidates verified per query; 0: none."
     )
+    loop_score_min: float = Field(
+        3.0,
+        ge=0.0,
+        description="On calibrated model versions: -log10 of the chance that a query with no "
+        "true revisit finds a match this good among the atlas's frames (a match is a loop from "
+        "score >= this + log10(frames)).",
+    )
+    calibration_milestones: str = Field(
+        "100,1000,10000,100000",
+        pattern=r"^\s*(\d+\s*(,\s*\d+\s*)*)?$",
+        description="Frame counts at which an atlas is calibrated automatically (comma-separated;"
+        " empty: never).",
+    )
+    retrain_activate_worse: bool = Field(
+        False,
+        description="Activate a retrained version even when it is worse than the active one on "
+        "the frames it did not train on.",
+    )
     verify_min_inliers: int | None = Field(
         None,
         ge=1,
@@ -163,6 +181,12 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'loopnet.sqlite3').resolve()}"
+
+    @property
+    def milestones(self) -> tuple[int, ...]:
+        """The calibration milestones, ascending (empty: automatic calibration off)."""
+        text = self.calibration_milestones.strip()
+        return tuple(sorted({int(v) for v in text.split(",")})) if text else ()
 
     @property
     def index_dir(self) -> Path:

@@ -69,6 +69,7 @@ class Runtime:
             assert self.sessions is not None
             pipeline = self._pipeline or FeaturePipeline(preset, *self.settings.pipeline_options())
             service = AtlasService(self.settings, self.sessions, pipeline)
+            service.frames.enqueue = lambda job_id: self.queue.enqueue(job_id)
             service.load_all()
             self._follower = ChangeFollower(
                 self.sessions,

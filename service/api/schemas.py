@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
@@ -35,6 +36,17 @@ class AtlasOut(BaseModel):
     feature_signature: dict[str, Any] = Field(
         description="Extractor and backbone settings every frame of this atlas was described with."
     )
+    calibration: CalibrationStateOut
+
+
+class CalibrationStateOut(BaseModel):
+    state: Literal["uncalibrated", "calibrated"] = Field(
+        description="'uncalibrated': the active version embeds with the uncalibrated blend."
+    )
+    version: int | None = Field(
+        None, description="The model version whose calibration job fitted the active one's."
+    )
+    frames_at_fit: int | None = Field(None, description="Frames the calibration was fitted on.")
 
 
 class SubmapIn(BaseModel):
@@ -99,6 +111,12 @@ class CandidateOut(BaseModel):
     )
     inlier_ratio: float | None = Field(None, description="Inliers / tentative matches.")
     verified: bool = Field(False, description="Inliers reach the verification minimum.")
+    score: float | None = Field(
+        None,
+        description="Calibrated score, -log10 of the probability that two frames of different "
+        "places of this atlas are this similar (3: one impostor pair in a thousand); the same "
+        "meaning on every atlas and model version. Null: the model version is not calibrated.",
+    )
     relative_pose: RelativePoseOut | None = Field(
         None, description="From the essential matrix when both frames have intrinsics."
     )
@@ -141,6 +159,13 @@ class QueryOut(BaseModel):
         "was among the frames searched.",
     )
     verification: VerificationOut
+    score_threshold: float | None = Field(
+        None,
+        description="The calibrated score the match had to reach for a loop closure "
+        "(LOOPNET_LOOP_SCORE_MIN + log10 of the frames in the atlas: the best of N impostors is N "
+        "times likelier to pass); null when the model version is not calibrated and the "
+        "similarity threshold decided.",
+    )
 
 
 class ObserveOut(QueryOut):
@@ -177,11 +202,45 @@ class RetrainParams(TrainingConfig):
     """Parameters of a retraining job; every field has a default."""
 
 
+class CalibrateParams(BaseModel):
+    """Parameters of a calibration job; every field has a default."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    aggregator: Literal["vlad", "mean"] = Field(
+        "vlad", description="How a frame's local descriptors become one vector."
+    )
+    words: int = Field(64, ge=2, le=1024, description="VLAD vocabulary size.")
+    alpha: float = Field(0.5, ge=0, le=1, description="Weight of the local branch in the fusion.")
+
+
 class JobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["retrain"] = "retrain"
-    params: RetrainParams = Field(default_factory=RetrainParams)
+    kind: Literal["retrain", "calibrate"] = Field(
+        "retrain",
+        description="'retrain': train the heads (on the latest calibration); 'calibrate': fit "
+        "the atlas's calibration (local aggregation, branch whitening, calibrated score) on "
+        "its stored features. Each writes and activates a new model version.",
+    )
+    params: RetrainParams = Field(
+        default_factory=RetrainParams, description="A retraining's parameters."
+    )
+    calibration: CalibrateParams = Field(
+        default_factory=CalibrateParams, description="A calibration's parameters."
+    )
+
+    @model_validator(mode="after")
+    def _parameters_of_its_kind(self) -> JobIn:
+        other = "params" if self.kind == "calibrate" else "calibration"
+        if other in self.model_fields_set:
+            raise ValueError(f"'{other}' does not apply to a {self.kind} job")
+        return self
+
+    def job_params(self) -> dict[str, Any]:
+        if self.kind == "calibrate":
+            return self.calibration.model_dump()
+        return asdict(self.params)
 
 
 class JobOut(BaseModel):

@@ -68,6 +68,13 @@ class AtlasService:
 
     # ----- atlases -----------------------------------------------------------------------
 
+    def catch_up(self) -> None:
+        """Apply the change feed now, as each process's follower thread does every period
+        (for the harness and tools that run without the thread)."""
+        with self.sessions() as session:
+            revisions = change_feed.revisions(session)
+        self.follow(revisions)
+
     def create_atlas(self, name: str, description: str = "") -> Atlas:
         validate_name("atlas", name)
         heads_config = self.pipeline.heads_config()

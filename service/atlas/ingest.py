@@ -7,7 +7,9 @@ rows in one transaction, and only then add the embedding to the in-memory index.
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -18,28 +20,24 @@ from service.atlas.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
+from service.jobs.milestones import calibration_due
 from service.metrics import observe_stages
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
-from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
-from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.ml.pipeline import FeaturePipeline
 from service.ml.thumbnails import make_thumbnail
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame
+
+log = logging.getLogger(__name__)
 
 
 def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
     validate_name("robot", robot_id)
     if timestamp is not None and not np.isfinite(timestamp):
         raise InvalidInput("timestamp must be a finite number of seconds")
-
-
-def embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
-    vectors = embed_vectors(heads, features.local_vector[None], features.global_vector[None])
-    row: np.ndarray = vectors[0]
-    return row
 
 
 class FrameIngest:
@@ -58,6 +56,9 @@ class FrameIngest:
         self.pipeline = pipeline
         self.states = states
         self.inference = inference
+        # hands a job id to the queue (set by the process that has one); without it, or when
+        # the queue is down, a milestone's job waits queued for a worker's sweep
+        self.enqueue: Callable[[int], None] | None = None
 
     def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
         """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
@@ -162,13 +163,27 @@ class FrameIngest:
             revision = change_feed.record(
                 session, atlas_id=atlas.id, op=change_feed.ADD, frame_ids=[frame.id]
             )
+            calibration = calibration_due(session, self.settings, atlas.id)
+            job_id = calibration.id if calibration is not None else None
+        if job_id is not None:
+            self._enqueue_calibration(job_id)
         with self.states.lock(frame.atlas_id):
             state = self.states.loaded(frame.atlas_id)
             if state.revision < revision:  # else the change feed has handled it already
-                embedding = embed(state.heads, features)
+                embedding = state.model.embed(features)
                 state.index.add(np.array([frame.id]), embedding[None], [robot_id])
                 state.dirty = True
         return frame
+
+    def _enqueue_calibration(self, job_id: int) -> None:
+        if self.enqueue is None:
+            return
+        try:
+            self.enqueue(job_id)
+        except Exception as exc:  # the frame is stored; the sweep will enqueue the job
+            log.warning(
+                "calibration job %d not queued now (%s); a worker will find it", job_id, exc
+            )
 
     def delete_frame(self, atlas_name: str, frame_id: int) -> None:
         """Delete one frame (rows, features); every process drops it from its index."""

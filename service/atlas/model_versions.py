@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from service.ml.calibration import Calibration
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.storage.models import ModelVersion
 
@@ -16,13 +17,16 @@ class VersionConfig:
     """The ``config`` JSON of a model version row, read and written only through here.
 
     ``heads`` rebuilds the untrained heads; ``training`` and ``job_id`` say how a trained
-    version was made.
+    version was made. ``calibration``, when the version embeds through one: ``path`` of its
+    ``.npz`` (relative to the models directory), ``version`` (the model version whose job
+    fitted it; retrained versions keep it) and ``frames_at_fit``.
     """
 
     heads: HeadsConfig
     trained: bool = False
     training: dict[str, Any] | None = None
     job_id: int | None = None
+    calibration: dict[str, Any] | None = None
 
     @classmethod
     def of(cls, version: ModelVersion) -> VersionConfig:
@@ -32,6 +36,7 @@ class VersionConfig:
             trained=bool(raw.get("trained")),
             training=raw.get("training"),
             job_id=raw.get("job_id"),
+            calibration=raw.get("calibration"),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -40,6 +45,8 @@ class VersionConfig:
             out["training"] = self.training
         if self.job_id is not None:
             out["job_id"] = self.job_id
+        if self.calibration is not None:
+            out["calibration"] = self.calibration
         return out
 
 
@@ -75,6 +82,20 @@ def weights_of(version: ModelVersion, models_dir: Path) -> Path | None:
         return None
     path = Path(version.weights_path)
     return path if path.is_absolute() else models_dir / path
+
+
+def calibration_file(models_dir: Path, atlas_id: int, version: int) -> Path:
+    """The calibration of a model version, beside its weights."""
+    return models_dir / f"atlas-{atlas_id}" / f"v{version}-calibration.npz"
+
+
+def load_calibration(version: ModelVersion, models_dir: Path) -> Calibration | None:
+    """The calibration ``version`` embeds through, or None (the uncalibrated blend)."""
+    calibration = VersionConfig.of(version).calibration
+    if calibration is None:
+        return None
+    path = Path(calibration["path"])
+    return Calibration.load(path if path.is_absolute() else models_dir / path)
 
 
 def load_heads(version: ModelVersion, models_dir: Path) -> LoopNetHeads:

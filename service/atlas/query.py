@@ -7,15 +7,15 @@ filter, searches and reads the candidates and their stored keypoints for verific
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
-import torch
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.filters import QueryFilter, resolve
-from service.atlas.ingest import FrameIngest, embed, validate_frame_fields
+from service.atlas.ingest import FrameIngest, validate_frame_fields
 from service.atlas.results import (
     Candidate,
     QueryResult,
@@ -165,24 +165,30 @@ class AtlasQueries:
             state = self.states.loaded(atlas.id)
             timings: dict[str, float] = {}
             start = time.perf_counter()
-            embedding = embed(state.heads, features)
-            prediction = state.heads.predict_submap(
-                torch.from_numpy(features.local_vector[None]),
-                torch.from_numpy(features.global_vector[None]),
-            )
+            model = state.model
+            embedding = model.embed(features)
+            prediction = model.predict_submap(features)
             timings["heads"] = (time.perf_counter() - start) * 1000.0
             found = self._find(session, atlas, state, embedding, k, query_filter, timings)
+        scores = model.score(np.array([c.similarity for c in found.candidates], np.float64))
+        if scores is not None:
+            for candidate, score in zip(found.candidates, scores, strict=True):
+                candidate.score = round(float(score), 4)
         config = self.verification.config
+        min_inliers = self.min_inliers(state, config.matcher)
         candidates = found.candidates
         verifications: dict[int, Verification] = {}
         if self.verification.enabled and candidates:
             start = time.perf_counter()
             checked = candidates[: config.top]
-            verifications = self.verification.verify(
-                View(features.local, features.image_size, intrinsics),
-                [found.frames[c.frame_id] for c in checked],
-                found.stored,
-            )
+            verifications = {
+                frame_id: replace(v, verified=v.inliers >= min_inliers)
+                for frame_id, v in self.verification.verify(
+                    View(features.local, features.image_size, intrinsics),
+                    [found.frames[c.frame_id] for c in checked],
+                    found.stored,
+                ).items()
+            }
             for candidate in checked:
                 verified = verifications.get(candidate.frame_id)
                 if verified is not None:
@@ -207,18 +213,28 @@ class AtlasQueries:
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         enabled = self.verification.enabled
+        # calibrated versions decide on the score, others on the cosine
+        score_threshold = (
+            loop_score_threshold(self.settings.loop_score_min, state.index.size)
+            if scores is not None
+            else None
+        )
+        evidence = None
+        if match is not None:
+            evidence = match.similarity if score_threshold is None else match.score
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
             match=match,
             candidates=candidates[:k],
             loop_closure=decide(
-                match.similarity if match else None,
+                evidence,
                 verifications.get(match.frame_id) if match else None,
-                threshold=threshold,
+                threshold=threshold if score_threshold is None else score_threshold,
                 verify=enabled,
             ),
             threshold=threshold,
+            score_threshold=score_threshold,
             predicted_submap=guess,
             keypoints=features.local.count,
             timings_ms={name: round(ms, 3) for name, ms in timings.items()},
@@ -227,9 +243,17 @@ class AtlasQueries:
                 enabled=enabled,
                 matcher=config.matcher if enabled else None,
                 verified_candidates=len(verifications),
-                min_inliers=config.min_inliers if enabled else None,
+                min_inliers=min_inliers if enabled else None,
             ),
         )
+
+    def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
+        """The setting when given, else the atlas calibration's (fitted for this matcher), else
+        the matcher's default."""
+        fitted = state.min_inliers
+        if self.settings.verify_min_inliers is None and fitted is not None and fitted[0] == matcher:
+            return fitted[1]
+        return self.verification.config.min_inliers
 
     def _find(
         self,
@@ -264,6 +288,14 @@ class AtlasQueries:
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
         return Found(candidates, frames, names, stored)
+
+
+def loop_score_threshold(score_min: float, frames: int) -> float:
+    """The score the best of ``frames`` candidates must reach so that a query with no true
+    revisit passes with probability ``10**-score_min`` at most: each impostor pair passes score
+    ``s`` with probability ``10**-s`` (the calibration's meaning), the best of ``frames`` about
+    ``frames`` times as often. One setting then means the same on small and large atlases."""
+    return round(score_min + math.log10(max(frames, 1)), 4)
 
 
 def with_extraction_timings(

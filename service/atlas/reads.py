@@ -25,6 +25,7 @@ Sessions = sessionmaker[Session]
 
 def summary_of(session: Session, atlas: Atlas) -> dict[str, Any]:
     version = repo.active_model_version(session, atlas_id=atlas.id)
+    config = VersionConfig.of(version)
     return {
         "name": atlas.name,
         "description": atlas.description,
@@ -32,8 +33,20 @@ def summary_of(session: Session, atlas: Atlas) -> dict[str, Any]:
         "submaps": repo.count_submaps(session, atlas_id=atlas.id),
         "frames": repo.count_frames(session, atlas_id=atlas.id),
         "active_model_version": version.version,
-        "classifier_trained": VersionConfig.of(version).trained,
+        "classifier_trained": config.trained,
         "feature_signature": atlas.feature_signature,
+        "calibration": calibration_state(config),
+    }
+
+
+def calibration_state(config: VersionConfig) -> dict[str, Any]:
+    """Whether the active version is calibrated, by which version's job, on how many frames."""
+    if config.calibration is None:
+        return {"state": "uncalibrated", "version": None, "frames_at_fit": None}
+    return {
+        "state": "calibrated",
+        "version": config.calibration.get("version"),
+        "frames_at_fit": config.calibration.get("frames_at_fit"),
     }
 
 

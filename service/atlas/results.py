@@ -14,6 +14,7 @@ class Candidate:
     robot_id: str
     similarity: float
     inliers: int | None = None
+    score: float | None = None  # calibrated: -log10 P(an impostor pair is this similar)
     inlier_ratio: float | None = None
     verified: bool = False
     relative_pose: RelativePose | None = None
@@ -52,6 +53,7 @@ class QueryResult:
     verification: VerificationSummary = field(
         default_factory=lambda: VerificationSummary(enabled=False)
     )
+    score_threshold: float | None = None  # set when the decision used the calibrated score
     query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 

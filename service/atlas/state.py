@@ -20,6 +20,8 @@ from service.config import Settings
 from service.errors import AtlasUnavailable, NotFound
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
+from service.ml.active_model import ActiveModel
+from service.ml.calibration import Calibration
 from service.ml.heads import LoopNetHeads
 from service.storage import repository as repo
 from service.storage.models import ModelVersion
@@ -29,7 +31,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class LoadedAtlas:
-    """What queries of one atlas need in memory: its active heads and its index."""
+    """What queries of one atlas need in memory: its active heads (over its calibration, when
+    the version has one) and its index."""
 
     atlas_id: int
     model_version: int
@@ -37,6 +40,12 @@ class LoadedAtlas:
     index: AtlasIndex
     dirty: bool = False
     revision: int = 0  # the atlas revision the index reflects (see service/atlas/change_feed.py)
+    calibration: Calibration | None = None
+    min_inliers: tuple[str, int] | None = None  # (matcher, minimum) fitted by the calibration
+
+    @property
+    def model(self) -> ActiveModel:
+        return ActiveModel(self.heads, self.calibration)
 
 
 class AtlasStates:
@@ -133,6 +142,8 @@ class AtlasStates:
         with self.sessions() as session:
             version: ModelVersion = repo.active_model_version(session, atlas_id=atlas_id)
             heads = models_store.load_heads(version, self.settings.models_dir)
+            calibration = models_store.load_calibration(version, self.settings.models_dir)
+            fitted = (models_store.VersionConfig.of(version).calibration or {}).get("min_inliers")
             # the revision first: frames read after it can only be newer, never missing
             revision = change_feed.atlas_revision(session, atlas_id=atlas_id)
             robot_of = repo.frame_ids_and_robots(session, atlas_id=atlas_id)
@@ -145,7 +156,15 @@ class AtlasStates:
                     log.warning("index %s unreadable (%s); rebuilding from the database", path, exc)
             if index is None:
                 index = AtlasIndex(heads.config.fused_dim)
-            state = LoadedAtlas(atlas_id, version.version, heads, index, revision=revision)
+            state = LoadedAtlas(
+                atlas_id,
+                version.version,
+                heads,
+                index,
+                revision=revision,
+                calibration=calibration,
+                min_inliers=(fitted["matcher"], fitted["min_inliers"]) if fitted else None,
+            )
             self._reconcile(session, state, robot_of)
         return state
 
@@ -157,7 +176,7 @@ class AtlasStates:
         missing = sorted(in_db - in_index)
         state.index.remove(extra)
         state.index.set_robots({i: robot_of[i] for i in in_db & in_index})
-        add_stored_frames(session, state.atlas_id, state.heads, state.index, frame_ids=missing)
+        add_stored_frames(session, state.atlas_id, state.model, state.index, frame_ids=missing)
         if len(extra) or missing:
             log.info(
                 "atlas %d: index caught up with the database (+%d, -%d frames)",
@@ -228,7 +247,7 @@ class AtlasStates:
                     if changes.complete:
                         state.index.remove(np.array(changes.removed, np.int64))
                         add_stored_frames(
-                            session, atlas_id, state.heads, state.index, frame_ids=changes.added
+                            session, atlas_id, state.model, state.index, frame_ids=changes.added
                         )
                     else:  # the log was pruned past our cursor: compare everything
                         upto = change_feed.atlas_revision(session, atlas_id=atlas_id)

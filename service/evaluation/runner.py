@@ -30,6 +30,7 @@ from tqdm import tqdm
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
+from service.evaluation.calibrated_pass import DEFAULT_CALIBRATION, calibrated_methods
 from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
 from service.evaluation.image_check import unreadable_images
 from service.evaluation.metrics import rank_by_similarity, summary
@@ -46,6 +47,7 @@ from service.evaluation.verification_pass import (
     subsample_queries,
     verification_methods,
 )
+from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset, resolve_preset
@@ -53,6 +55,7 @@ from service.ml.presets import ModelPreset, resolve_preset
 log = logging.getLogger(__name__)
 
 TARGET_MARGIN = 0.10
+UNCALIBRATED = "loopnet-uncalibrated"  # kind of today's service-path row, kept for comparison
 EXTRACTOR_LABELS = {"disk": "DISK", "xfeat": "XFeat"}
 
 
@@ -121,8 +124,14 @@ class EvalResult:
 def _alpha_label(extractor: str, alpha: float) -> tuple[str, str]:
     name = EXTRACTOR_LABELS.get(extractor, extractor)
     if alpha == 1.0:
-        return f"{extractor}-local-only", f"local only ({name} aggregated, α=1)"
-    return f"{extractor}-alpha{alpha:g}", f"fused {name} α={alpha:g} (untrained heads)"
+        return (
+            f"{extractor}-local-only-uncalibrated",
+            f"local only ({name} mean, uncalibrated, α=1)",
+        )
+    return (
+        f"{extractor}-uncalibrated-alpha{alpha:g}",
+        f"fused {name} α={alpha:g} (uncalibrated, untrained heads)",
+    )
 
 
 def _loopnet_methods(
@@ -145,9 +154,9 @@ def _loopnet_methods(
         extraction["local"] + np.array(ms["global_features"])[len(dataset.references) :]
     )
     service_method = evaluate_ranking(
-        f"loopnet-{extractor}",
-        f"LoopNet {name} α={preset_alpha:g} (service path)",
-        "loopnet",
+        f"loopnet-{extractor}-uncalibrated",
+        f"LoopNet {name} α={preset_alpha:g} uncalibrated (service path today)",
+        UNCALIBRATED,
         result.ranking,
         dataset,
         submap_of,
@@ -164,8 +173,8 @@ def _loopnet_methods(
         branch = "global" if alpha == 0.0 else "local" if alpha == 1.0 else "fused"
         if alpha == 0.0:
             method_name, label = (
-                "global-only",
-                f"global only ({result.preset.backbone.name} GeM, α=0)",
+                "global-only-uncalibrated",
+                f"global only ({result.preset.backbone.name} GeM raw, α=0)",
             )
         else:
             method_name, label = _alpha_label(extractor, alpha)
@@ -225,11 +234,13 @@ def _baseline_method(
 
 
 def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
-    loopnet = next(m for m in methods if m.kind == "loopnet")
+    loopnet = next((m for m in methods if m.kind == "loopnet"), None)
+    if loopnet is None:
+        return {"verdict": "no calibrated LoopNet row ran", "met": None}
     rivals = [
         m
         for m in methods
-        if m.kind == "baseline" or m.name == "global-only" or m.name.endswith("local-only")
+        if m.kind == "baseline" or m.name.startswith("global-only") or "-local-only" in m.name
     ]
     if not rivals:
         return {"verdict": "no baseline or single-branch ablation ran", "met": None}
@@ -362,6 +373,14 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             reporting.write_json(report, output / "report.json")
             reporting.write_markdown(report, methods + global_only, output / "report.md")
 
+    # the calibrated rows need as many references as a calibration job does
+    calibrates = len(dataset.references) >= CALIBRATION_MIN_FRAMES
+    if not calibrates:
+        log.warning(
+            "no calibrated rows: %d references, a calibration needs %d",
+            len(dataset.references),
+            CALIBRATION_MIN_FRAMES,
+        )
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -387,11 +406,33 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             cache_dir=cache_dir,
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
+            calibration={
+                "aggregator": DEFAULT_CALIBRATION.aggregator,
+                "words": DEFAULT_CALIBRATION.words,
+                "alpha": DEFAULT_CALIBRATION.alpha,
+            }
+            if calibrates
+            else None,
         )
-        for method in _loopnet_methods(
+        calibrated = (
+            calibrated_methods(
+                dataset,
+                submap_of,
+                extractor,
+                EXTRACTOR_LABELS.get(extractor, extractor),
+                result,
+                alphas=config.alphas,
+                k=config.k,
+                with_global_only=first_pass is None,
+            )
+            if calibrates
+            else []
+        )
+        uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
-        ):
-            (global_only if method.name == "global-only" else methods).append(method)
+        )
+        for method in calibrated + uncalibrated:
+            (global_only if method.name.startswith("global-only") else methods).append(method)
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
@@ -408,7 +449,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             dataset,
             submap_of,
             first_pass,
-            next(m for m in methods if m.kind == "loopnet"),
+            next(m for m in methods if m.kind == UNCALIBRATED),
             shots=config.retrain_shots,
             protocols=config.retrain_protocols,
             k=config.k,

@@ -14,7 +14,7 @@ import json
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +24,17 @@ from service.atlas.catalog import AtlasService
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
+from service.jobs.retraining import JobRunner
+from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset
 from service.runtime import Runtime
+from service.storage import jobs
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.feature_store import load_calibration_inputs
 
 ATLAS = "evaluation"
 ROBOT = "reference"
@@ -41,6 +48,9 @@ class PassResult:
     Attributes:
         ranking: the service's answers (``Q x k``, reference indices, cosine similarities).
         reference_vectors, query_vectors: ``(D, R)`` of every frame, for the ablations.
+        stored_references: the references' features as the atlas stores them, read back by
+            :func:`load_calibration_inputs` (what a calibration job reads).
+        query_local: the queries' local features (for calibrated embeddings).
         stage_ms: per-frame milliseconds of each stage (decode, CNNs, ingest, heads, search).
         query_ms: per-query end-to-end milliseconds (decode + CNNs + heads + search).
         keypoints: keypoints found per frame, references then queries.
@@ -58,6 +68,20 @@ class PassResult:
     cached: bool
     threshold: float
     signature: dict[str, object] = field(default_factory=dict)
+    stored_references: CalibrationInputs | None = None
+    query_local: list[LocalFeatures] = field(default_factory=list)
+    calibrated: CalibratedAnswers | None = None
+
+
+@dataclass
+class CalibratedAnswers:
+    """The service's answers once the atlas is calibrated by the calibration job's own code:
+    ranking by calibrated score, the answers' cosines, and heads + search milliseconds."""
+
+    ranking: Ranking
+    cosines: np.ndarray
+    query_ms: np.ndarray
+    job_metrics: dict[str, object]
 
 
 # ----- feature cache ----------------------------------------------------------------------
@@ -148,6 +172,59 @@ class CachedFeatures:
 CACHE_ARRAYS = ("paths", "stamps", "local", "global_", "keypoints", "image_size", "stage_ms")
 
 
+class LocalFeatureCache:
+    """Every frame's keypoints, descriptors (float16, as the feature store keeps them) and
+    scores, beside the vector cache: calibration needs the descriptors themselves."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    @staticmethod
+    def for_vectors(vector_cache: Path) -> LocalFeatureCache:
+        return LocalFeatureCache(vector_cache.with_name(vector_cache.stem + "-local.npz"))
+
+    def load(self) -> list[LocalFeatures] | None:
+        if not self.path.is_file():
+            return None
+        with np.load(self.path) as data:
+            offsets = data["offsets"]
+            keypoints, descriptors, scores = data["keypoints"], data["descriptors"], data["scores"]
+        return [
+            LocalFeatures(keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b])
+            for a, b in zip(offsets[:-1], offsets[1:], strict=True)
+        ]
+
+    def save(self, frames: Sequence[LocalFeatures]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        offsets = np.cumsum([0, *(f.count for f in frames)])
+        tmp = self.path.with_name(self.path.name + ".tmp.npz")
+        np.savez(
+            tmp,
+            offsets=offsets,
+            keypoints=np.concatenate([f.keypoints for f in frames]).astype(np.float32),
+            descriptors=np.concatenate([f.descriptors for f in frames]).astype(np.float16),
+            scores=np.concatenate([f.scores for f in frames]).astype(np.float32),
+        )
+        tmp.replace(self.path)
+
+
+def extract_local_features(
+    pipeline: FeaturePipeline, paths: Sequence[Path], desc: str
+) -> list[LocalFeatures]:
+    """Only the local extractor over ``paths`` (the backbone's vectors are cached already)."""
+    frames = []
+    for path in tqdm(paths, desc=desc, unit="img", leave=False):
+        local = pipeline.local.extract(decode_image(path.read_bytes()))
+        frames.append(
+            LocalFeatures(
+                local.keypoints,
+                local.descriptors.astype(np.float16).astype(np.float32),
+                local.scores,
+            )
+        )
+    return frames
+
+
 # ----- the pass ---------------------------------------------------------------------------
 
 
@@ -160,14 +237,19 @@ def _frames(
     paths: Sequence[Path],
     cached: CachedFeatures | None,
     rows: dict[Path, int],
+    local: list[LocalFeatures] | None,
     desc: str,
 ) -> Iterator[tuple[FrameFeatures, float, bool]]:
-    """Each image's features and decode time, from the cache where it has the file."""
+    """Each image's features and decode time, from the cache where it has the file (with its
+    local features from ``local``, aligned with ``paths``)."""
     dim = service.pipeline.local.descriptor_dim
-    for path in tqdm(paths, desc=desc, unit="img", leave=False):
+    for i, path in enumerate(tqdm(paths, desc=desc, unit="img", leave=False)):
         row = rows.get(path.resolve())
         if cached is not None and row is not None:
-            yield (*cached.frame(row, dim), True)
+            features, decode_ms = cached.frame(row, dim)
+            if local is not None:
+                features.local = local[i]
+            yield features, decode_ms, True
         else:
             yield (*service.extract(path.read_bytes()), False)
 
@@ -181,28 +263,44 @@ def run_service_pass(
     cache_dir: Path | None,
     label: str,
     on_features: Callable[[Path, FrameFeatures], None] | None = None,
+    calibration: dict[str, object] | None = None,
 ) -> PassResult:
     """Ingest the references into a temporary atlas, query every query image, keep the vectors.
 
     ``on_features`` sees every freshly extracted frame (the verification pass keeps its
-    keypoints, which the vector cache does not hold).
+    keypoints, which the vector cache does not hold). With ``calibration`` (a calibration job's
+    parameters), the atlas is then calibrated by the job and every query asked again.
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None else None
     rows = cached.rows() if cached is not None else {}
     images = list(all_images(dataset))
     from_cache: list[bool] = []
+    local_cache = LocalFeatureCache.for_vectors(path) if path is not None else None
+    cached_local = local_cache.load() if local_cache is not None else None
+    if cached_local is not None and len(cached_local) != len(images):
+        cached_local = None  # written for another image list
+    if cached is not None and cached_local is None:
+        cached_local = extract_local_features(pipeline, images, f"{label} keypoints")
+        if local_cache is not None:
+            local_cache.save(cached_local)
+    every_local: list[LocalFeatures] = []
+    stored_references: CalibrationInputs | None = None
     n_refs = len(dataset.references)
     local_vectors, global_vectors, keypoints, sizes, extraction_ms = [], [], [], [], []
     stage_ms: dict[str, list[float]] = {
         name: [] for name in (*EXTRACTION_STAGES, "ingest", "heads", "search")
     }
     query_ms: list[float] = []
+    query_local: list[LocalFeatures] = []
     indices, scores = [], []
+    query_features: list[FrameFeatures] = []
 
     with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
         # Retrieval only: geometric verification has its own pass (verification_pass.py).
-        settings = Settings(data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0)
+        settings = Settings(
+            data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0, calibration_milestones=""
+        )
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)
         service = runtime.service
@@ -210,11 +308,14 @@ def run_service_pass(
         for submap in sorted(set(submap_of)):
             service.create_submap(ATLAS, submap_name(submap))
         frame_to_reference: dict[int, int] = {}
-        frames = _frames(service, images, cached, rows, f"{label}: {dataset.name}")
+        frames = _frames(service, images, cached, rows, cached_local, f"{label}: {dataset.name}")
         for i, (features, decode_ms, hit) in enumerate(frames):
             from_cache.append(hit)
             if on_features is not None and not hit:
                 on_features(images[i], features)
+            every_local.append(_as_stored(features.local))
+            if i == n_refs:
+                stored_references = _read_back(service)
             local_vectors.append(features.local_vector)
             global_vectors.append(features.global_vector)
             keypoints.append(
@@ -238,6 +339,8 @@ def run_service_pass(
                 stage_ms["ingest"].append((time.perf_counter() - start) * 1000.0)
                 frame_to_reference[frame.id] = i
                 continue
+            query_local.append(_as_stored(features.local))
+            query_features.append(features)
             answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
             found = [frame_to_reference[c.frame_id] for c in answer.candidates]
             indices.append(found + [-1] * (k - len(found)))
@@ -245,6 +348,13 @@ def run_service_pass(
             stage_ms["heads"].append(answer.timings_ms["heads"])
             stage_ms["search"].append(answer.timings_ms["search"])
             query_ms.append(sum(stages) + answer.timings_ms["heads"] + answer.timings_ms["search"])
+        if stored_references is None:  # a dataset without queries
+            stored_references = _read_back(service)
+        calibrated = (
+            _calibrated_answers(service, query_features, frame_to_reference, k, calibration)
+            if calibration is not None and query_features
+            else None
+        )
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
@@ -260,6 +370,8 @@ def run_service_pass(
             stage_ms=np.array(extraction_ms, np.float64),
         )
         (cached.merged(fresh) if cached is not None else fresh).save(path)
+        if local_cache is not None:
+            local_cache.save(every_local)
     local_all, global_all = np.stack(local_vectors), np.stack(global_vectors)
     return PassResult(
         preset=pipeline.preset,
@@ -273,4 +385,59 @@ def run_service_pass(
         cached=all_cached,
         threshold=threshold,
         signature=pipeline.signature.to_json(),
+        stored_references=stored_references,
+        query_local=query_local,
+        calibrated=calibrated,
     )
+
+
+def _calibrated_answers(
+    service: AtlasService,
+    queries: Sequence[FrameFeatures],
+    frame_to_reference: dict[int, int],
+    k: int,
+    params: dict[str, object],
+) -> CalibratedAnswers:
+    """Calibrate the atlas as the service does (a calibration job run by the job runner on the
+    stored references), then ask every query again through the service."""
+    with transaction(service.sessions) as session:
+        atlas_id = repo.get_atlas(session, name=ATLAS).id
+        job_id = jobs.create_job(session, atlas_id=atlas_id, kind="calibrate", params=params).id
+    JobRunner(service.settings, service.sessions).run(job_id)
+    with service.sessions() as session:
+        job = jobs.get_job(session, job_id=job_id)
+        if job.status != "succeeded":
+            raise RuntimeError(f"the calibration job failed: {job.error}")
+        metrics = dict(job.metrics)
+    service.catch_up()
+    indices, scores, cosines, query_ms = [], [], [], []
+    for features in queries:
+        # descriptors rounded as the feature cache holds them: a rerun answers the same
+        features = replace(features, local=_as_stored(features.local))
+        answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
+        found = [frame_to_reference[c.frame_id] for c in answer.candidates]
+        pad = k - len(found)
+        indices.append(found + [-1] * pad)
+        scores.append([float(c.score or 0.0) for c in answer.candidates] + [-np.inf] * pad)
+        cosines.append(answer.candidates[0].similarity if answer.candidates else -1.0)
+        query_ms.append(answer.timings_ms["heads"] + answer.timings_ms["search"])
+    return CalibratedAnswers(
+        Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
+        np.array(cosines, np.float64),
+        np.array(query_ms, np.float64),
+        metrics,
+    )
+
+
+def _as_stored(local: LocalFeatures) -> LocalFeatures:
+    """Descriptors rounded to float16, as the feature store gives them back."""
+    return LocalFeatures(
+        local.keypoints, local.descriptors.astype(np.float16).astype(np.float32), local.scores
+    )
+
+
+def _read_back(service: AtlasService) -> CalibrationInputs:
+    """The references as a calibration job reads them: from the atlas's feature store."""
+    with service.sessions() as session:
+        atlas = repo.get_atlas(session, name=ATLAS)
+        return load_calibration_inputs(session, atlas.id)

@@ -35,11 +35,17 @@ ROW_MEMBERS = (
 )
 REQUIRED_MEMBERS = frozenset({"manifest.json", *ROW_MEMBERS, "features.npz", "index.faiss"})
 WEIGHTS_MEMBER = re.compile(r"^models/v[1-9][0-9]{0,8}\.pt$")
+CALIBRATION_MEMBER = re.compile(r"^models/v[1-9][0-9]{0,8}-calibration\.npz$")
 
 
 def weights_member(version: int) -> str:
     """The archive member holding a trained version's weights (what ``WEIGHTS_MEMBER`` matches)."""
     return f"models/v{version}.pt"
+
+
+def calibration_member(version: int) -> str:
+    """The archive member holding a calibrated version's calibration (``CALIBRATION_MEMBER``)."""
+    return f"models/v{version}-calibration.npz"
 
 
 def _migrations() -> Any:
@@ -115,6 +121,7 @@ def _allowed(name: str) -> bool:
         name in REQUIRED_MEMBERS
         or name in OPTIONAL_MEMBERS
         or WEIGHTS_MEMBER.match(name) is not None
+        or CALIBRATION_MEMBER.match(name) is not None
     )
 
 

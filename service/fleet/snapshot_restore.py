@@ -2,11 +2,11 @@
 
 A restore reads the archive within size limits (:mod:`service.fleet.snapshot_archive`), refuses
 an unknown format version, an unknown schema revision or features of another signature than the
-restoring service extracts, and validates every row, array and weights file
+restoring service extracts, and validates every row, array, weights and calibration file
 (:mod:`service.fleet.snapshot_rows`) before it writes anything. It then writes in short
 transactions under a hidden name, renamed in the last one; a failure deletes what was written.
 Frames get new ids; the index is rebuilt from the archived features with the active heads
-(cheap: no CNN), so a FAISS file from elsewhere is never parsed.
+and calibration (cheap: no CNN), so a FAISS file from elsewhere is never parsed.
 """
 
 from __future__ import annotations
@@ -97,16 +97,32 @@ def restore_atlas(
     return name
 
 
+def _heads_inputs(
+    snapshot: DecodedSnapshot, start: int, stop: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The active heads' inputs of frames ``start:stop``: the stored vectors, or the
+    calibrated branches of the stored descriptors."""
+    features, calibration = snapshot.features, snapshot.active.calibration
+    if calibration is None:
+        return features.local_vectors[start:stop], features.global_vectors[start:stop]
+    offsets = features.offsets
+    descriptors = [
+        features.descriptors[offsets[i] : offsets[i + 1]].astype(np.float32)
+        for i in range(start, min(stop, len(features.frame_ids)))
+    ]
+    scores = [
+        features.scores[offsets[i] : offsets[i + 1]]
+        for i in range(start, min(stop, len(features.frame_ids)))
+    ]
+    return calibration.branch_vectors(descriptors, scores, features.global_vectors[start:stop])
+
+
 def _embeddings(snapshot: DecodedSnapshot) -> np.ndarray:
     """Every frame's embedding under the active version (the index is rebuilt, never read:
     a FAISS file from elsewhere is not parsed)."""
     heads, features = snapshot.active.heads, snapshot.features
     chunks = [
-        embed_vectors(
-            heads,
-            features.local_vectors[start : start + EMBED_CHUNK],
-            features.global_vectors[start : start + EMBED_CHUNK],
-        )
+        embed_vectors(heads, *_heads_inputs(snapshot, start, start + EMBED_CHUNK))
         for start in range(0, len(features.frame_ids), EMBED_CHUNK)
     ]
     if not chunks:
@@ -145,11 +161,17 @@ def _write_atlas(
                 weights_path = models_store.row_weights_path(
                     settings.models_dir, atlas.id, row.version
                 )
+            config = row.config.model_dump()
+            if config["calibration"] is None:
+                del config["calibration"]
+            else:  # the calibration file is written under the new atlas
+                target = models_store.calibration_file(settings.models_dir, atlas.id, row.version)
+                config["calibration"]["path"] = str(target.relative_to(settings.models_dir))
             session.add(
                 ModelVersion(
                     atlas_id=atlas.id,
                     version=row.version,
-                    config=row.config.model_dump(),
+                    config=config,
                     metrics=row.metrics,
                     weights_path=weights_path,
                     is_active=row.is_active,
@@ -227,9 +249,15 @@ def _write_files(
     frame_map: dict[int, int],
     written: list[Path],
 ) -> None:
-    """Weights (their classifier relabelled with the new submap ids) and the active version's
-    index under the new frame ids; each file is listed in ``written`` before it is written."""
+    """Calibrations, weights (their classifier relabelled with the new submap ids) and the
+    active version's index under the new frame ids; each file is listed in ``written`` before
+    it is written."""
     for version in snapshot.versions:
+        if version.calibration_bytes is not None:
+            path = models_store.calibration_file(settings.models_dir, atlas_id, version.row.version)
+            written.append(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(version.calibration_bytes)
         if version.row.weights is None:
             continue
         heads = version.heads

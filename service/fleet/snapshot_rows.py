@@ -3,14 +3,16 @@
 Every row is checked with the rules the API applies to what it stores (names and robot ids,
 finite numbers, unit-quaternion poses, positive focal lengths, the retraining bounds of a
 heads configuration), every reference between rows must resolve, the features must be plain
-numeric arrays of the shapes the rows announce (:mod:`service.fleet.snapshot_features`), and weights must
-load into heads of their row's configuration. Whatever fails is an :class:`InvalidInput`
+numeric arrays of the shapes the rows announce (:mod:`service.fleet.snapshot_features`), weights must
+load into heads of their row's configuration, and a calibration must load (no pickle, bounded
+inflation) and turn the atlas's features into its heads' inputs. Whatever fails is an :class:`InvalidInput`
 naming the member and line, so a restore answers 422 and writes nothing.
 """
 
 from __future__ import annotations
 
 import io
+import zipfile
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Any, Literal, TypeVar
@@ -22,13 +24,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from service.atlas.names import NAME_PATTERN
 from service.errors import InvalidInput
 from service.fleet.snapshot_archive import (
+    CALIBRATION_MEMBER,
     WEIGHTS_MEMBER,
     Archive,
     ArchiveLimits,
+    calibration_member,
     first_error,
     weights_member,
 )
 from service.fleet.snapshot_features import MAX_DIM, Features, decode_features
+from service.ml.calibration import Calibration
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import HeadsConfig, LoopNetHeads
 
@@ -98,11 +103,23 @@ class HeadsRow(_Row):
     embed_dim: int | None = Field(ge=2, le=MAX_DIM)
 
 
+class CalibrationRow(BaseModel):
+    """A calibrated version's ``config.calibration`` (its ``path`` is rewritten at restore)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    path: str = Field(max_length=1000)
+    version: int = Field(ge=1, le=999_999_999)
+    frames_at_fit: int = Field(ge=0)
+    min_inliers: dict[str, Any] | None = None
+
+
 class VersionConfigRow(BaseModel):
     model_config = ConfigDict(extra="allow", strict=True)  # training records its parameters
 
     heads: HeadsRow
     trained: bool
+    calibration: CalibrationRow | None = None  # absent: the uncalibrated blend
 
 
 class ModelVersionRow(_Row):
@@ -112,6 +129,7 @@ class ModelVersionRow(_Row):
     is_active: bool
     created_at: datetime
     weights: str | None  # required key: null for untrained heads rebuilt from the config
+    calibration_file: str | None = None  # a calibrated version's member (absent: none)
 
 
 class RelativePoseRow(_Row):
@@ -156,6 +174,8 @@ def _parse_lines(member: str, data: bytes, model: type[RowT]) -> list[RowT]:
 class Version:
     row: ModelVersionRow
     heads: LoopNetHeads
+    calibration: Calibration | None = None
+    calibration_bytes: bytes | None = None  # the member as archived, written back verbatim
 
 
 @dataclass
@@ -192,7 +212,39 @@ def _load_weights(name: str, data: bytes, config: HeadsRow) -> LoopNetHeads:
     return heads.eval()
 
 
-def _versions(archive: Archive, features: Features) -> tuple[list[Version], Version]:
+def _load_calibration(
+    name: str, data: bytes, limits: ArchiveLimits, features: Features, heads: HeadsRow
+) -> Calibration:
+    """A calibration member that loads without pickles, inflates within the limits and maps
+    the atlas's stored features onto the heads' input sizes with finite numbers."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zipped:
+            inflated = sum(info.file_size for info in zipped.infolist())
+        if inflated > limits.max_member_bytes:
+            raise InvalidInput(
+                f"the snapshot's {name} inflates beyond LOOPNET_SNAPSHOT_MAX_MEMBER_BYTES"
+            )
+        calibration = Calibration.load(io.BytesIO(data))
+        probe_local, probe_global = calibration.branch_vectors(
+            [np.ones((1, features.descriptor_dim), np.float32)],
+            [np.ones(1, np.float32)],
+            np.ones((1, features.global_dim), np.float32),
+        )
+    except InvalidInput:
+        raise
+    except Exception as exc:  # a bad zip, an object array, missing or misshapen arrays
+        raise InvalidInput(f"the snapshot's {name} is not a loadable calibration: {exc}") from exc
+    shapes = (probe_local.shape[1], probe_global.shape[1])
+    if shapes != (heads.local_dim, heads.global_dim):
+        raise InvalidInput(f"the snapshot's {name} does not fit its version's heads")
+    if not (np.isfinite(probe_local).all() and np.isfinite(probe_global).all()):
+        raise InvalidInput(f"the snapshot's {name} holds non-finite numbers")
+    return calibration
+
+
+def _versions(
+    archive: Archive, features: Features, limits: ArchiveLimits
+) -> tuple[list[Version], Version]:
     rows = _parse_lines(
         "model_versions.jsonl", archive.members["model_versions.jsonl"], ModelVersionRow
     )
@@ -209,10 +261,30 @@ def _versions(archive: Archive, features: Features) -> tuple[list[Version], Vers
     archived = {name for name in archive.members if WEIGHTS_MEMBER.match(name)}
     if referenced != archived:
         raise InvalidInput("the snapshot's weights files do not match its model versions")
+    calibrations = {r.calibration_file for r in rows if r.calibration_file is not None}
+    if calibrations != {name for name in archive.members if CALIBRATION_MEMBER.match(name)}:
+        raise InvalidInput("the snapshot's calibration files do not match its model versions")
     versions = []
     for row in rows:
         heads_row = row.config.heads
-        if (heads_row.local_dim, heads_row.global_dim) != (
+        calibration = None
+        if (row.calibration_file is None) != (row.config.calibration is None):
+            raise InvalidInput(
+                f"the snapshot's version {row.version} and its calibration file disagree"
+            )
+        if row.calibration_file is not None:
+            if row.calibration_file != calibration_member(row.version):
+                raise InvalidInput(
+                    f"the snapshot's version {row.version} names another calibration"
+                )
+            calibration = _load_calibration(
+                row.calibration_file,
+                archive.members[row.calibration_file],
+                limits,
+                features,
+                heads_row,
+            )
+        elif (heads_row.local_dim, heads_row.global_dim) != (
             features.descriptor_dim,
             features.global_dim,
         ):
@@ -227,7 +299,10 @@ def _versions(archive: Archive, features: Features) -> tuple[list[Version], Vers
             if row.weights != weights_member(row.version):
                 raise InvalidInput(f"the snapshot's version {row.version} names other weights")
             heads = _load_weights(row.weights, archive.members[row.weights], heads_row)
-        versions.append(Version(row, heads))
+        calibration_bytes = (
+            archive.members[row.calibration_file] if row.calibration_file is not None else None
+        )
+        versions.append(Version(row, heads, calibration, calibration_bytes))
     return versions, next(v for v in versions if v.row.is_active)
 
 
@@ -282,7 +357,7 @@ def decode_snapshot(
     counts = np.diff(features.offsets)
     if any(f.keypoint_count != int(c) for f, c in zip(ordered, counts, strict=True)):
         raise InvalidInput("the snapshot's keypoint counts disagree with its features")
-    versions, active = _versions(archive, features)
+    versions, active = _versions(archive, features, limits)
     for version in versions:
         labels = version.heads.class_labels
         if not set(labels) <= known_submaps:

@@ -36,9 +36,16 @@ from service.atlas import model_versions as models_store
 from service.atlas import thumbnails
 from service.config import Settings
 from service.errors import Conflict
-from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision, weights_member
+from service.fleet.snapshot_archive import (
+    FORMAT,
+    FORMAT_VERSION,
+    calibration_member,
+    head_revision,
+    weights_member,
+)
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
+from service.ml.active_model import ActiveModel
 from service.storage import repository as repo
 from service.storage.models import Base, Frame, FrameFeatureRow, LoopClosure, Submap
 
@@ -130,12 +137,21 @@ def export_atlas(
             if weights is not None:
                 row["weights"] = weights_member(version.version)
                 members[row["weights"]] = weights.read_bytes()
+            calibration = models_store.VersionConfig.of(version).calibration
+            if calibration is not None:
+                fitted = Path(calibration["path"])
+                fitted = fitted if fitted.is_absolute() else settings.models_dir / fitted
+                row["calibration_file"] = calibration_member(version.version)
+                members[row["calibration_file"]] = fitted.read_bytes()
             version_rows.append(row)
         members["model_versions.jsonl"] = _jsonl(version_rows)
         active = repo.active_model_version(session, atlas_id=atlas.id)
-        heads = models_store.load_heads(active, settings.models_dir)
-        index = AtlasIndex(heads.config.fused_dim)
-        add_stored_frames(session, atlas.id, heads, index)
+        model = ActiveModel(
+            models_store.load_heads(active, settings.models_dir),
+            models_store.load_calibration(active, settings.models_dir),
+        )
+        index = AtlasIndex(model.dim)
+        add_stored_frames(session, atlas.id, model, index)
         members["index.faiss"] = index.to_bytes()
         members[thumbnails.SNAPSHOT_MEMBER] = thumbnails.export_member(session, atlas.id)
         manifest = {

@@ -1,24 +1,64 @@
-"""Embed stored frames with a model version's heads into an index (no CNN pass)."""
+"""Embed stored frames with a model version into an index (no CNN pass)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 from sqlalchemy.orm import Session
 
 from service.index import AtlasIndex
-from service.ml.heads import LoopNetHeads
+from service.ml.active_model import ActiveModel
+from service.ml.calibration import Calibration
 from service.ml.pipeline import embed_vectors
 from service.ml.precision import resolve_precision
-from service.storage.feature_store import iter_stored_vectors
+from service.storage.feature_store import (
+    StoredVectors,
+    concat_vectors,
+    iter_stored_descriptors,
+    iter_stored_vectors,
+)
 
 CHUNK = 10_000  # frame ids per IN (...) query: SQLite allows 32,766 variables
+
+
+def iter_model_inputs(
+    session: Session,
+    atlas_id: int,
+    calibration: Calibration | None,
+    *,
+    frame_ids: Sequence[int] | None = None,
+) -> Iterator[StoredVectors]:
+    """Batches of the heads' inputs of stored frames: the stored (D, R) vectors, or with a
+    calibration the calibrated branches computed from the stored descriptors, read in batches."""
+    chunks = (
+        [None]
+        if frame_ids is None
+        else [list(frame_ids[i : i + CHUNK]) for i in range(0, len(frame_ids), CHUNK)]
+    )
+    for chunk in chunks:
+        if chunk is not None and not chunk:
+            continue
+        if calibration is None:
+            yield from iter_stored_vectors(session, atlas_id, frame_ids=chunk)
+            continue
+        for batch in iter_stored_descriptors(session, atlas_id, frame_ids=chunk):
+            local, global_ = calibration.branch_vectors(
+                batch.descriptors, batch.scores, batch.global_
+            )
+            yield StoredVectors(batch.ids, local, global_, batch.submaps, batch.robots)
+
+
+def load_model_inputs(
+    session: Session, atlas_id: int, calibration: Calibration | None
+) -> StoredVectors:
+    """Every frame's heads inputs, concatenated (what retraining trains on)."""
+    return concat_vectors(list(iter_model_inputs(session, atlas_id, calibration)))
 
 
 def add_stored_frames(
     session: Session,
     atlas_id: int,
-    heads: LoopNetHeads,
+    model: ActiveModel,
     index: AtlasIndex,
     *,
     frame_ids: Sequence[int] | None = None,
@@ -32,18 +72,10 @@ def add_stored_frames(
     """
     resolved = resolve_precision(precision)
     added = 0
-    chunks = (
-        [None]
-        if frame_ids is None
-        else [list(frame_ids[i : i + CHUNK]) for i in range(0, len(frame_ids), CHUNK)]
-    )
-    for chunk in chunks:
-        if chunk is not None and not chunk:
-            continue
-        for batch in iter_stored_vectors(session, atlas_id, frame_ids=chunk):
-            embeddings = embed_vectors(heads, batch.local, batch.global_, resolved)
-            added += index.add(batch.ids, embeddings, batch.robots)
-            if progress is not None:
-                progress(added)
+    for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=frame_ids):
+        embeddings = embed_vectors(model.heads, batch.local, batch.global_, resolved)
+        added += index.add(batch.ids, embeddings, batch.robots)
+        if progress is not None:
+            progress(added)
     index.wait_rebuilt()  # a bulk build ends with the index type its size calls for
     return added

@@ -1,9 +1,13 @@
-"""A retraining job from start to finish, as the worker runs it.
+"""A retraining job from start to finish, as the worker runs it (and the runner of every job
+kind: a calibration job is in :mod:`service.jobs.calibration`).
 
-Train new heads on the atlas's stored features, save them as the next model version, re-embed
-every frame into a new index file beside the old one, and only then, in one transaction, make
-the version active and the job succeeded, logged in the change feed: each API process's follower
-thread loads the new version and swaps its in-memory state atomically. A failed or cancelled job removes its files and leaves the
+Train new heads on the atlas's stored features (through the active version's calibration, when
+it has one), compare them with the active heads on the frames they did not train on, save them
+as the next model version, re-embed every frame into a new index file beside the old one, and
+only then, in one transaction, make the version active (when it is not worse, or the settings
+force it) and the job succeeded, logged in the change feed: each API process's follower thread
+loads the new version and swaps its in-memory state atomically. A failed or cancelled job
+removes its files and leaves the
 active version as it was.
 """
 
@@ -15,19 +19,30 @@ import traceback
 from dataclasses import asdict
 from typing import Any
 
+import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import change_feed
 from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
-from service.index.builder import add_stored_frames
-from service.ml.heads import HeadsConfig
-from service.ml.training import TrainingCancelled, TrainingConfig, TrainingData, train_heads
+from service.index.builder import add_stored_frames, load_model_inputs
+from service.jobs.calibration import run_calibration
+from service.ml.active_model import ActiveModel
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.impostors import impostor_model_of
+from service.ml.pipeline import embed_vectors
+from service.ml.training import (
+    TrainingCancelled,
+    TrainingConfig,
+    TrainingData,
+    evaluate,
+    split_shots,
+    train_heads,
+)
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.feature_store import load_stored_vectors
 from service.storage.models import Atlas, Job, JobStatus
 
 log = logging.getLogger(__name__)
@@ -55,13 +70,16 @@ class JobRunner:
             atlas = session.get(Atlas, atlas_id)
             atlas_name = atlas.name if atlas else f"#{atlas_id}"
         log.info("job %d (%s of atlas '%s'): started", job_id, kind, atlas_name)
-        if kind != "retrain":
+        if kind not in ("retrain", "calibrate"):
             self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
             log.error("job %d (atlas '%s'): failed, unknown kind %r", job_id, atlas_name, kind)
             return
         files: list[Any] = []
         try:
-            version = self._retrain(job_id, atlas_id, params, files)
+            if kind == "calibrate":
+                version = run_calibration(self, job_id, atlas_id, params, files)
+            else:
+                version = self._retrain(job_id, atlas_id, params, files)
         except TrainingCancelled as exc:
             self._cleanup(files)
             self._finish(job_id, JobStatus.CANCELLED, str(exc))
@@ -74,7 +92,7 @@ class JobRunner:
             )
         else:
             log.info(
-                "job %d (atlas '%s'): succeeded, model version %d is active",
+                "job %d (atlas '%s'): succeeded, model version %d recorded",
                 job_id,
                 atlas_name,
                 version,
@@ -101,10 +119,14 @@ class JobRunner:
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)
-            base = models_store.VersionConfig.of(active).heads
-            stored = load_stored_vectors(session, atlas_id)
+            active_heads = models_store.load_heads(active, self.settings.models_dir)
+            active_config = models_store.VersionConfig.of(active)
+            # retraining starts from the latest calibration: the heads read its branches
+            calibration = models_store.load_calibration(active, self.settings.models_dir)
+            stored = load_model_inputs(session, atlas_id, calibration)
         if len(stored) == 0:
             raise ValueError("the atlas has no frames to train on")
+        base = active_config.heads
         config.check_fits(base)
         base = HeadsConfig(
             local_dim=base.local_dim,
@@ -120,13 +142,13 @@ class JobRunner:
             with self.sessions() as session:
                 return jobs.get_job(session, job_id=job_id).cancel_requested
 
+        data = TrainingData(stored.local, stored.global_, stored.submaps, stored.ids)
+        shots, held_out = split_shots(data.submaps, config.shots)
         result = train_heads(
-            TrainingData(stored.local, stored.global_, stored.submaps, stored.ids),
-            base,
-            config,
-            progress=on_epoch,
-            should_stop=cancelled,
+            data, base, config, progress=on_epoch, should_stop=cancelled, shot_idx=shots
         )
+        gate = compare_on_held_out(active_heads, result.heads, data, shots, held_out)
+        activate = gate["not_worse"] or self.settings.retrain_activate_worse
         with self.sessions() as session:
             version = 1 + max(
                 v.version for v in repo.list_model_versions(session, atlas_id=atlas_id)
@@ -134,12 +156,95 @@ class JobRunner:
         weights = models_store.weights_file(self.settings.models_dir, atlas_id, version)
         files.append(weights)
         result.heads.save(weights)
+        version_calibration = None
+        if calibration is not None and active_config.calibration is not None:
+            # a trained embedding changes what a cosine means: refit the impostor model on it
+            embeddings = embed_vectors(result.heads, stored.local, stored.global_)
+            calibration.impostors = impostor_model_of(
+                embeddings, stored.robots, stored.ids, seed=config.seed
+            )
+            path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
+            files.append(path)
+            calibration.save(path)
+            version_calibration = {
+                **active_config.calibration,
+                "path": str(path.relative_to(self.settings.models_dir)),
+            }
 
-        self._progress(job_id, 78, f"re-embedding {len(stored)} frames from stored features")
-        if cancelled():
-            raise TrainingCancelled("cancelled before re-embedding")
+        metrics: dict[str, Any] = {**result.metrics, "held_out": gate, "activated": activate}
+        if activate:
+            self._progress(job_id, 78, f"re-embedding {len(stored)} frames from stored features")
+            if cancelled():
+                raise TrainingCancelled("cancelled before re-embedding")
+            model = ActiveModel(result.heads, calibration)
+            metrics.update(self._reembed(job_id, atlas_id, version, model, len(stored), files))
+        verdict = _verdict(gate, activate)
+        self._progress(job_id, 95, "recording the new model version")
+        self.publish(
+            job_id,
+            atlas_id,
+            models_store.VersionConfig(
+                result.heads.config,
+                trained=True,
+                training=asdict(config),
+                job_id=job_id,
+                calibration=version_calibration,
+            ),
+            metrics,
+            weights_path=str(weights.relative_to(self.settings.models_dir)),
+            activate=activate,
+            message=f"model version {version} {verdict}",
+        )
+        return version
+
+    def publish(
+        self,
+        job_id: int,
+        atlas_id: int,
+        config: models_store.VersionConfig,
+        metrics: dict[str, Any],
+        *,
+        weights_path: str | None,
+        activate: bool,
+        message: str,
+    ) -> None:
+        """In one transaction: the new model version (active or not) and the job's success;
+        a cancellation requested meanwhile wins."""
+        with transaction(self.sessions) as session:
+            job = jobs.get_job(session, job_id=job_id)
+            if job.cancel_requested:
+                raise TrainingCancelled("cancelled before activation")
+            created = repo.create_model_version(
+                session,
+                atlas_id=atlas_id,
+                config=config.to_json(),
+                metrics=metrics,
+                weights_path=weights_path,
+                activate=activate,
+            )
+            jobs.finish_job(
+                session,
+                job=job,
+                status=JobStatus.SUCCEEDED,
+                message=message,
+                metrics=metrics,
+                model_version=created.version,
+            )
+            if activate:  # every API process's follower thread swaps to it
+                change_feed.record_activation(session, atlas_id=atlas_id, version=created.version)
+
+    def _reembed(
+        self,
+        job_id: int,
+        atlas_id: int,
+        version: int,
+        model: ActiveModel,
+        frames: int,
+        files: list[Any],
+    ) -> dict[str, Any]:
+        """Embed every stored frame with ``model`` into the version's index file."""
         started = time.perf_counter()
-        index = AtlasIndex(result.heads.config.fused_dim)
+        index = AtlasIndex(model.dim)
         last_report = started
 
         def on_chunk(done: int) -> None:
@@ -149,49 +254,49 @@ class JobRunner:
             if time.perf_counter() - last_report >= REPORT_SECONDS:
                 last_report = time.perf_counter()
                 self._progress(
-                    job_id,
-                    78 + 16 * done / len(stored),
-                    f"re-embedding: {done}/{len(stored)} frames",
+                    job_id, 78 + 16 * done / max(frames, 1), f"re-embedding: {done}/{frames} frames"
                 )
 
         # fp32 like ingest, restore and reconcile: a frame's vector must not depend on which path
         # embedded it (bf16 re-embedding is in the benchmarks, not in the service)
         with self.sessions() as session:
-            add_stored_frames(session, atlas_id, result.heads, index, progress=on_chunk)
-        reembed_seconds = time.perf_counter() - started
+            add_stored_frames(session, atlas_id, model, index, progress=on_chunk)
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)
         files.append(index_path)
         index.save(index_path)
-
-        metrics = {
-            **result.metrics,
-            "reembed_seconds": round(reembed_seconds, 3),
+        return {
+            "reembed_seconds": round(time.perf_counter() - started, 3),
             "indexed_frames": index.size,
         }
-        self._progress(job_id, 95, "activating the new model version")
-        with transaction(self.sessions) as session:
-            job = jobs.get_job(session, job_id=job_id)
-            if job.cancel_requested:
-                raise TrainingCancelled("cancelled before activation")
-            repo.create_model_version(
-                session,
-                atlas_id=atlas_id,
-                config=models_store.VersionConfig(
-                    result.heads.config, trained=True, training=asdict(config), job_id=job_id
-                ).to_json(),
-                metrics=metrics,
-                weights_path=models_store.row_weights_path(
-                    self.settings.models_dir, atlas_id, version
-                ),
-                activate=True,
-            )
-            jobs.finish_job(
-                session,
-                job=job,
-                status=JobStatus.SUCCEEDED,
-                message=f"model version {version} is active",
-                metrics=metrics,
-                model_version=version,
-            )
-            change_feed.record_activation(session, atlas_id=atlas_id, version=version)
-        return version
+
+
+def compare_on_held_out(
+    active: LoopNetHeads,
+    new: LoopNetHeads,
+    data: TrainingData,
+    shots: np.ndarray,
+    held_out: np.ndarray,
+) -> dict[str, Any]:
+    """Retrieval accuracy of the active and the new heads on the frames the job did not train
+    on (their nearest shot by embedding lies in their submap): the new version is not worse
+    when it is at least as accurate."""
+    if len(held_out) == 0:
+        return {"frames": 0, "active": None, "new": None, "change": None, "not_worse": True}
+    before = evaluate(active, data, shots, held_out)["retrieval_accuracy"]
+    after = evaluate(new, data, shots, held_out)["retrieval_accuracy"]
+    return {
+        "frames": int(len(held_out)),
+        "active": round(before, 4),
+        "new": round(after, 4),
+        "change": round(after - before, 4),
+        "not_worse": after >= before,
+    }
+
+
+def _verdict(gate: dict[str, Any], activated: bool) -> str:
+    if gate["change"] is None:
+        return "is active (no held-out frames to compare on)"
+    change = f"held-out retrieval accuracy {gate['active']:.3f} -> {gate['new']:.3f}"
+    if activated:
+        return f"is active ({change})" if gate["not_worse"] else f"is active, forced ({change})"
+    return f"was not activated: worse than the active version ({change})"

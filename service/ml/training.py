@@ -75,6 +75,16 @@ class TrainingConfig:
         default=15, ge=1, le=1000, description="Epochs without validation gain before stopping."
     )
     seed: int = Field(default=0, ge=0)
+    # Frame-level term: two augmented views of each shot must find each other among all the
+    # shots (instance discrimination), so pulling a submap together cannot merge its frames.
+    # Off by default: it did not stop map-only retraining from lowering Recall@1 on every K
+    # (see benchmarks/RESULTS.md); the job's held-out not-worse check is the safeguard.
+    frame_weight: float = Field(
+        default=0.0, ge=0, le=100, description="Weight of the frame-level (instance) term."
+    )
+    frame_temperature: float = Field(
+        default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
+    )
 
     def __post_init__(self) -> None:
         if self.classification_weight == 0 and self.contrastive_weight == 0:
@@ -184,6 +194,12 @@ def contrastive_loss(embeddings: torch.Tensor, labels: torch.Tensor, margin: flo
     if negatives.any():
         loss = loss + F.relu(margin - distances[negatives]).pow(2).mean()
     return loss
+
+
+def frame_loss(first: torch.Tensor, second: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Cross-entropy of each frame's first view finding its own second view among all frames."""
+    logits = F.normalize(first, dim=-1) @ F.normalize(second, dim=-1).T / temperature
+    return F.cross_entropy(logits, torch.arange(len(first)))
 
 
 def _augment(x: torch.Tensor, config: TrainingConfig, generator: torch.Generator) -> torch.Tensor:
@@ -340,6 +356,15 @@ def train_heads(
         )
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
+        if config.frame_weight > 0 and len(train_idx) > 1:
+            first, second = (
+                heads.embed(
+                    _augment(local[train_idx], config, generator),
+                    _augment(global_[train_idx], config, generator),
+                )
+                for _ in range(2)
+            )
+            loss = loss + config.frame_weight * frame_loss(first, second, config.frame_temperature)
         torch.autograd.backward(loss)
         optimiser.step()
         heads.eval()

@@ -10,6 +10,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage.models import Frame, FrameFeatureRow
 
@@ -101,7 +102,11 @@ def iter_stored_vectors(
 
 def load_stored_vectors(session: Session, atlas_id: int) -> StoredVectors:
     """All frames' stored vectors of an atlas, concatenated."""
-    batches = list(iter_stored_vectors(session, atlas_id))
+    return concat_vectors(list(iter_stored_vectors(session, atlas_id)))
+
+
+def concat_vectors(batches: Sequence[StoredVectors]) -> StoredVectors:
+    """Batches of vectors as one (empty batches list: zero frames)."""
     if not batches:
         return StoredVectors(
             np.zeros(0, np.int64),
@@ -117,3 +122,65 @@ def load_stored_vectors(session: Session, atlas_id: int) -> StoredVectors:
         np.concatenate([b.submaps for b in batches]),
         [robot for b in batches for robot in b.robots],
     )
+
+
+def load_calibration_inputs(session: Session, atlas_id: int) -> CalibrationInputs:
+    """An atlas's stored descriptors, scores, backbone vectors, robots and frame order: what a
+    calibration is fitted on (descriptors stay float16 until aggregated)."""
+    batches = list(iter_stored_descriptors(session, atlas_id))
+    return CalibrationInputs(
+        descriptors=[d for b in batches for d in b.descriptors],
+        scores=[s for b in batches for s in b.scores],
+        global_vectors=np.concatenate([b.global_ for b in batches])
+        if batches
+        else np.zeros((0, 0), np.float32),
+        robots=[r for b in batches for r in b.robots],
+        order=np.concatenate([b.ids for b in batches]) if batches else np.zeros(0, np.int64),
+    )
+
+
+@dataclass(frozen=True)
+class StoredDescriptors:
+    """The local descriptors, scores and backbone vectors of a batch of frames (what a
+    calibrated model version embeds from), row-aligned with their ids, submaps and robots."""
+
+    ids: np.ndarray
+    descriptors: list[np.ndarray]  # float16 as stored, N_i x d each
+    scores: list[np.ndarray]
+    global_: np.ndarray
+    submaps: np.ndarray
+    robots: list[str]
+
+
+def iter_stored_descriptors(
+    session: Session, atlas_id: int, *, frame_ids: Sequence[int] | None = None, batch: int = 256
+) -> Iterator[StoredDescriptors]:
+    """Batches of stored descriptors in frame id order (small batches: the blobs are large)."""
+    query = (
+        select(
+            Frame.id,
+            Frame.submap_id,
+            Frame.robot_id,
+            FrameFeatureRow.descriptors,
+            FrameFeatureRow.descriptor_dim,
+            FrameFeatureRow.scores,
+            FrameFeatureRow.global_vector,
+        )
+        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
+        .where(Frame.atlas_id == atlas_id)
+        .order_by(Frame.id)
+    )
+    if frame_ids is not None:
+        query = query.where(Frame.id.in_(list(frame_ids)))
+    result = session.execute(query.execution_options(yield_per=batch))
+    for rows in result.partitions(batch):
+        yield StoredDescriptors(
+            ids=np.array([r.id for r in rows], np.int64),
+            descriptors=[
+                np.frombuffer(r.descriptors, "<f2").reshape(-1, r.descriptor_dim) for r in rows
+            ],
+            scores=[np.frombuffer(r.scores, "<f4") for r in rows],
+            global_=np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows]),
+            submaps=np.array([r.submap_id for r in rows], np.int64),
+            robots=[r.robot_id for r in rows],
+        )

@@ -17,10 +17,9 @@ FINISHED = (JobStatus.SUCCEEDED.value, JobStatus.FAILED.value, JobStatus.CANCELL
 
 
 def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, Any]) -> Job:
-    """A queued job; one retraining per atlas at a time (a second gets 409)."""
-    busy = session.scalar(
-        select(Job).where(Job.atlas_id == atlas_id, Job.kind == kind, Job.status.in_(ACTIVE))
-    )
+    """A queued job; one job per atlas at a time (a second gets 409): every kind writes the
+    atlas's next model version."""
+    busy = session.scalar(select(Job).where(Job.atlas_id == atlas_id, Job.status.in_(ACTIVE)))
     if busy is not None:
         raise Conflict(f"a {kind} job for this atlas is already {busy.status} (job {busy.id})")
     job = Job(
@@ -36,6 +35,19 @@ def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, 
     session.add(job)
     session.flush()
     return job
+
+
+def calibration_jobs_for_milestone(session: Session, *, atlas_id: int, milestone: int) -> int:
+    """How many calibration jobs were ever created for an atlas's frame-count milestone."""
+    found = session.scalars(select(Job).where(Job.atlas_id == atlas_id, Job.kind == "calibrate"))
+    return sum(1 for job in found if (job.params or {}).get("milestone") == milestone)
+
+
+def has_active_job(session: Session, *, atlas_id: int) -> bool:
+    return (
+        session.scalar(select(Job.id).where(Job.atlas_id == atlas_id, Job.status.in_(ACTIVE)))
+        is not None
+    )
 
 
 def get_job(session: Session, *, job_id: int, atlas_id: int | None = None) -> Job:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, status
@@ -28,11 +27,13 @@ def job_out(atlas: str, job: Job) -> JobOut:
     response_model=JobOut,
     status_code=status.HTTP_202_ACCEPTED,
     responses={**ERRORS, 422: {"model": ErrorOut}, 503: {"model": ErrorOut}},
-    summary="Queue a retraining job",
+    summary="Queue a retraining or calibration job",
     description=(
-        "Few-shot retraining of the atlas's heads from stored features. Watch it with GET; on "
-        "success it creates and activates a new model version. One retraining per atlas at a "
-        "time (409 otherwise)."
+        "kind 'retrain': few-shot retraining of the atlas's heads from stored features, "
+        "activated only when not worse than the active version on the frames it did not train "
+        "on. kind 'calibrate': fit the atlas's calibration (also run automatically at frame-count "
+        "milestones). Watch it with GET; on success it creates a new model version. One job per "
+        "atlas at a time (409 otherwise)."
     ),
 )
 def submit_job(
@@ -43,7 +44,7 @@ def submit_job(
         runtime.queue,
         atlas=atlas,
         kind=body.kind,
-        params=asdict(body.params),
+        params=body.job_params(),
     )
     return job_out(atlas, job)
 

@@ -7,7 +7,9 @@ Methods, all on the same reference/query split and ground truth:
   local extractor, at the preset's fusion weight;
 - ablations on the same stored vectors: fused at the other alphas, local only (alpha = 1) and
   global only (alpha = 0; the backbone is the same for every extractor, so it is listed once);
-- the classical baselines (bag of ORB words; SeqSLAM's single-frame SAD).
+- the classical baselines (bag of ORB words; SeqSLAM's single-frame SAD);
+- with ``sequence``: ``<method>+seqL`` rows scoring queries in dataset order through the
+  service's sequence code (LoopNet per extractor, global only), and full SeqSLAM at the same L.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from tqdm import tqdm
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
+from service.evaluation.baselines.seqslam import full_seqslam
 from service.evaluation.datasets import Dataset, load_dataset
 from service.evaluation.metrics import rank_by_similarity, summary
 from service.evaluation.protocol import (
@@ -39,19 +42,23 @@ from service.evaluation.protocol import (
     evaluate_ranking,
 )
 from service.evaluation.retraining_pass import PROTOCOLS, RetrainingRow, retraining_rows
+from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.evaluation.verification_pass import (
     KeypointCache,
     subsample_queries,
     verification_methods,
 )
+from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
-from service.ml.pipeline import FeaturePipeline
+from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.presets import ModelPreset, resolve_preset
+from service.ml.sequences import SequenceSettings
 
 log = logging.getLogger(__name__)
 
 TARGET_MARGIN = 0.10
+SPEEDS = SequenceSettings().speeds
 EXTRACTOR_LABELS = {"disk": "DISK", "xfeat": "XFeat"}
 
 
@@ -78,6 +85,7 @@ class EvalConfig:
             extractor's ranking adds a row each (issue 5); empty: none.
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
+        sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
     """
 
     dataset: Path
@@ -105,6 +113,7 @@ class EvalConfig:
     verify: tuple[str, ...] = ()
     verify_top: int = 5
     query_stride: int = 1
+    sequence: tuple[int, ...] = ()
 
 
 @dataclass
@@ -187,7 +196,7 @@ def _loopnet_methods(
 
 def _baseline_method(
     name: str, long_side: int, dataset: Dataset, submap_of: Sequence[int], k: int
-) -> tuple[MethodResult, dict[str, dict[str, float]]]:
+) -> tuple[MethodResult, dict[str, dict[str, float]], np.ndarray]:
     baseline = build_baseline(name, long_side)
     describe_ms: list[float] = []
     described = []
@@ -201,7 +210,8 @@ def _baseline_method(
     baseline.fit(described[:n_refs])
     fit_ms = (time.perf_counter() - start) * 1000.0
     start = time.perf_counter()
-    ranking = rank_by_similarity(baseline.score(described[n_refs:]), k)
+    similarity = baseline.score(described[n_refs:])
+    ranking = rank_by_similarity(similarity, k)
     score_ms = (time.perf_counter() - start) * 1000.0 / max(len(dataset.queries), 1)
     method = evaluate_ranking(
         name,
@@ -217,7 +227,59 @@ def _baseline_method(
         "decode + describe": summary(describe_ms),
         "score vs all references (per query)": {"median": score_ms, "p95": score_ms, "n": 1},
     }
-    return method, stages
+    return method, stages, similarity
+
+
+def _unit_embeddings(result: PassResult, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """References' and queries' embeddings by untrained heads at ``alpha`` (the service's)."""
+    heads = LoopNetHeads(
+        HeadsConfig(
+            local_dim=result.reference_vectors[0].shape[1],
+            global_dim=result.reference_vectors[1].shape[1],
+            alpha=alpha,
+        )
+    ).eval()
+    return embed_vectors(heads, *result.reference_vectors), embed_vectors(
+        heads, *result.query_vectors
+    )
+
+
+SEQSLAM_VARIANTS = (
+    ("", "SeqSLAM full (contrast enhancement, window 10, + sequence search)", 10),
+    ("-raw", "SeqSLAM sequence search on raw SAD (no contrast enhancement)", None),
+)
+
+
+def _full_seqslam_methods(
+    similarity: np.ndarray,
+    single: MethodResult,
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    lengths: Sequence[int],
+    k: int,
+) -> list[MethodResult]:
+    """Full SeqSLAM on the SAD baseline's thumbnails (OpenSeqSLAM's enhancement window, and
+    without it), one row per variant and L."""
+    _, query_starts = dataset_trajectories(dataset)
+    rows = []
+    for suffix, label, window in SEQSLAM_VARIANTS:
+        for length in lengths:
+            start = time.perf_counter()
+            scores = full_seqslam(-similarity, length, window=window, query_starts=query_starts)
+            per_query = (time.perf_counter() - start) * 1000.0 / max(len(dataset.queries), 1)
+            rows.append(
+                evaluate_ranking(
+                    f"{single.name}{suffix}+seq{length}",
+                    f"{label} L={length}",
+                    "baseline",
+                    rank_by_similarity(scores, k),
+                    dataset,
+                    submap_of,
+                    query_ms=np.full(len(dataset.queries), per_query),
+                    details={"length": length, "window": window, "speeds": list(SPEEDS)},
+                )
+            )
+    return rows
 
 
 def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
@@ -328,6 +390,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     skipped: dict[str, str] = {}
     first_pass: PassResult | None = None
     first_keypoints: KeypointCache | None = None
+    passes: list[PassResult] = []
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -361,6 +424,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
+        passes.append(result)
         if first_pass is None:
             first_pass, first_keypoints = result, keypoints
     if first_pass is None:
@@ -395,12 +459,27 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         )
         methods += verified
         stages.update(verification_stages)
+    if config.sequence:
+        bases = []
+        for result in passes:
+            service_row = next(
+                m for m in methods if m.name == f"loopnet-{result.preset.local.name}"
+            )
+            bases.append((service_row, *_unit_embeddings(result, result.preset.alpha)))
+        global_row = next((m for m in methods if m.name == "global-only"), None)
+        if global_row is not None:
+            bases.append((global_row, *_unit_embeddings(first_pass, 0.0)))
+        methods += sequence_methods(bases, dataset, submap_of, config.sequence, config.k)
     for name in config.baselines:
-        method, baseline_stages = _baseline_method(
+        method, baseline_stages, similarity = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k
         )
         methods.append(method)
         stages[method.label] = baseline_stages
+        if config.sequence and name == "seqslam-sad":
+            methods += _full_seqslam_methods(
+                similarity, method, dataset, submap_of, config.sequence, config.k
+            )
 
     answerable = sum(1 for q in dataset.queries if q.positives)
     tolerance_text = (

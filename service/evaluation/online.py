@@ -52,7 +52,7 @@ class OnlineSettings:
 
     length: int = 10
     exclude_recent: int = 20
-    seeds: int = 5
+    seeds: int = SequenceSettings().seeds
     consistency: ConsistencySettings = field(default_factory=ConsistencySettings)
 
 

@@ -116,14 +116,19 @@ def test_map_moments_equal_the_full_similarity_rows() -> None:
     rng = np.random.default_rng(3)
     reference = _unit(rng.normal(size=(500, 16)))
     query = _unit(rng.normal(size=(4, 16)))
-    moments = MapMoments.of(reference[:450])
-    moments.add(reference[450:])
-    moments.add(reference[:10])
-    moments.remove(reference[:10])
-    mean, std = moments.row_stats(query)
+    moments = MapMoments(16, fold_every=8)
+    moments.add(reference[:450])  # folded at once
+    for vector in reference[450:]:  # one at a time: pending, folded every 8
+        moments.add(vector)
+    moments.add(reference[:3])
+    moments.remove(reference[:3])
     full = query @ reference.T
-    np.testing.assert_allclose(mean, full.mean(axis=1), atol=1e-6)
-    np.testing.assert_allclose(std, full.std(axis=1), atol=1e-6)
+    for _ in range(2):
+        mean, std = moments.row_stats(query)
+        np.testing.assert_allclose(mean, full.mean(axis=1), atol=1e-6)
+        np.testing.assert_allclose(std, full.std(axis=1), atol=1e-6)
+        moments.add(reference[:5])
+        moments.remove(reference[:5])  # exact with frames still pending
 
 
 def test_a_time_gap_or_a_jump_back_starts_a_new_sequence() -> None:

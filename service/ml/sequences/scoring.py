@@ -31,23 +31,26 @@ class SequenceSettings:
     length: query frames used at most (L), the newest included.
     speeds: reference frames passed per query frame (SeqSLAM's velocity range).
     reverse: also try traversing the reference the other way.
-    seeds: best map matches of each query frame that propose candidates.
-    neighbourhood: reference frames either side of each proposed candidate also scored.
+    seeds: best map matches of each query frame that vote for candidates.
+    neighbourhood: reference frames either side of each vote's landing place also voted for.
+    candidates: places scored exactly: those with the most votes (summed z-scores of the
+        seeds that land on them along one speed: a sparse pre-score of the same sum).
     """
 
     length: int = 10
     speeds: tuple[float, ...] = (0.8, 0.9, 1.0, 1.1, 1.25)
     reverse: bool = False
-    seeds: int = 5
+    seeds: int = 50
     neighbourhood: int = 1
+    candidates: int = 64
 
     def __post_init__(self) -> None:
         if self.length < 1:
             raise ValueError(f"sequence length must be at least 1, got {self.length}")
         if not self.speeds or any(v <= 0 for v in self.speeds):
             raise ValueError(f"speeds must be positive, got {self.speeds}")
-        if self.seeds < 1 or self.neighbourhood < 0:
-            raise ValueError("seeds must be >= 1 and neighbourhood >= 0")
+        if self.seeds < 1 or self.neighbourhood < 0 or self.candidates < 1:
+            raise ValueError("seeds and candidates must be >= 1 and neighbourhood >= 0")
 
     @property
     def signed_speeds(self) -> np.ndarray:
@@ -60,14 +63,19 @@ class MapMoments:
 
     ``mean(q) = q . m`` and ``var(q) = q^T M q - mean(q)^2`` with ``m`` the mean vector and ``M``
     the mean outer product: each query frame's similarity row over the whole map, standardised
-    without computing it. Rebuilt from the stored vectors at start; a cache, never the truth.
+    without computing it. Frames added or removed since the last fold are kept aside and
+    counted exactly (``(q . p)^2`` each), so one insertion costs ``O(d)`` and the ``d x d``
+    update runs once per ``fold_every`` frames. Rebuilt from the stored vectors at start: a
+    cache, never the truth.
     """
 
-    def __init__(self, dim: int) -> None:
+    def __init__(self, dim: int, fold_every: int = 256) -> None:
         self.count = 0
+        self.fold_every = fold_every
         self._sum = np.zeros(dim, dtype=np.float64)
         self._outer = np.zeros((dim, dim), dtype=np.float64)
-        self._normalised: tuple[np.ndarray, np.ndarray] | None = None  # float32, for BLAS
+        self._pending: list[np.ndarray] = []
+        self._signs: list[float] = []
 
     @classmethod
     def of(cls, vectors: np.ndarray) -> MapMoments:
@@ -75,36 +83,43 @@ class MapMoments:
         moments.add(vectors)
         return moments
 
-    def add(self, vectors: np.ndarray) -> None:
+    def _change(self, vectors: np.ndarray, sign: float) -> None:
         v = np.asarray(vectors, dtype=np.float64).reshape(-1, len(self._sum))
-        self.count += len(v)
-        self._sum += v.sum(axis=0)
-        self._outer += v.T @ v
-        self._normalised = None
+        self.count += int(sign) * len(v)
+        self._sum += sign * v.sum(axis=0)
+        if len(v) >= self.fold_every:
+            self._outer += sign * (v.T @ v)
+        else:
+            self._pending.extend(v)
+            self._signs.extend([sign] * len(v))
+            if len(self._pending) >= self.fold_every:
+                self._fold()
+
+    def _fold(self) -> None:
+        pending = np.stack(self._pending)
+        self._outer += pending.T @ (pending * np.array(self._signs)[:, None])
+        self._pending, self._signs = [], []
+
+    def add(self, vectors: np.ndarray) -> None:
+        self._change(vectors, 1.0)
 
     def remove(self, vectors: np.ndarray) -> None:
-        v = np.asarray(vectors, dtype=np.float64).reshape(-1, len(self._sum))
-        if len(v) > self.count:
-            raise ValueError(f"removing {len(v)} vectors from a map of {self.count}")
-        self.count -= len(v)
-        self._sum -= v.sum(axis=0)
-        self._outer -= v.T @ v
-        self._normalised = None
+        if len(np.atleast_2d(vectors)) > self.count:
+            raise ValueError(f"removing {len(vectors)} vectors from a map of {self.count}")
+        self._change(vectors, -1.0)
 
     def row_stats(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``n x d`` query vectors -> mean and standard deviation (``n`` each) of each one's
         cosine similarity to every map vector (std floored to keep z finite)."""
-        if self.count == 0:
+        if self.count <= 0:
             raise ValueError("the map is empty")
-        if self._normalised is None:
-            self._normalised = (
-                (self._sum / self.count).astype(np.float32),
-                (self._outer / self.count).astype(np.float32),
-            )
-        mean_vector, second_moment = self._normalised
-        q = np.asarray(queries, dtype=np.float32)
-        mean = (q @ mean_vector).astype(np.float64)
-        second = ((q @ second_moment) * q).sum(axis=1, dtype=np.float64)
+        q = np.asarray(queries, dtype=np.float64).reshape(-1, len(self._sum))
+        mean = q @ self._sum / self.count
+        second = ((q @ self._outer) * q).sum(axis=1)
+        if self._pending:
+            dots = q @ np.stack(self._pending).T
+            second += (dots**2) @ np.array(self._signs)
+        second /= self.count
         std = np.sqrt(np.maximum(second - mean**2, 0.0))
         return mean, np.maximum(std, 1e-6)
 
@@ -135,32 +150,50 @@ def propose_candidates(
     trajectories: Trajectories,
     settings: SequenceSettings,
     eligible: Callable[[np.ndarray], np.ndarray] | None = None,
+    seed_scores: Sequence[np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Map frames worth scoring for the newest query frame.
+    """Map frames worth scoring for the newest query frame, most voted first.
 
-    ``seeds[j]`` are the best map matches of query frame j (oldest first). A seed of the frame
-    ``a`` steps old proposes the frames ``round(a * v)`` places after it, for every speed, plus
-    their neighbours.
+    ``seeds[j]`` are the best map matches of query frame j (oldest first), ``seed_scores[j]``
+    their z-scores (None: one vote each). A seed of the frame ``a`` steps old votes for the
+    frames ``round(a * v)`` places after it (and their neighbours), for every speed; a place's
+    votes are summed per speed, and the ``settings.candidates`` places with the best speed's
+    sum are kept.
     """
     n = len(seeds)
     speeds = settings.signed_speeds
     spread = np.arange(-settings.neighbourhood, settings.neighbourhood + 1)
-    found: list[np.ndarray] = []
+    keys: list[np.ndarray] = []
+    weights: list[np.ndarray] = []
     for j, frames in enumerate(seeds):
         frames = np.asarray(frames, dtype=np.int64)[: settings.seeds]
         if not len(frames):
             continue
+        score = (
+            np.ones(len(frames))
+            if seed_scores is None
+            else np.asarray(seed_scores[j], dtype=np.float64)[: len(frames)]
+        )
         age = n - 1 - j
-        ahead = np.unique(np.rint(age * speeds).astype(np.int64))
-        shifts = (ahead[:, None] + spread[None, :]).ravel()
-        found.append(trajectories.step(frames[:, None], shifts[None, :]).ravel())
-    if not found:
+        ahead = np.rint(age * speeds).astype(np.int64)  # S
+        shifts = ahead[:, None] + spread[None, :]  # S x W
+        landed = trajectories.step(frames[:, None, None], shifts[None, :, :])  # s x S x W
+        speed_index = np.broadcast_to(np.arange(len(speeds))[None, :, None], landed.shape)
+        ok = landed >= 0
+        keys.append(landed[ok] * len(speeds) + speed_index[ok])
+        weights.append(np.broadcast_to(score[:, None, None], landed.shape)[ok])
+    if not keys:
         return np.zeros(0, np.int64)
-    candidates = np.unique(np.concatenate(found))
-    candidates = candidates[candidates >= 0]
-    if eligible is not None and len(candidates):
-        candidates = candidates[eligible(candidates)]
-    return candidates
+    unique_keys, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    votes = np.bincount(inverse, weights=np.concatenate(weights))
+    frames = unique_keys // len(speeds)
+    if eligible is not None and len(frames):
+        allowed = eligible(frames)
+        frames, votes = frames[allowed], votes[allowed]
+    order = np.lexsort((frames, -votes))  # best vote first; a frame keeps its best speed
+    frames = frames[order]
+    _, first = np.unique(frames, return_index=True)
+    return frames[np.sort(first)][: settings.candidates]
 
 
 def score_candidates(
@@ -270,13 +303,25 @@ def match_sequence(
     seeds = list(seeds)[-settings.length :]
     if len(seeds) != len(queries):
         raise ValueError(f"{len(queries)} query frames but {len(seeds)} seed lists")
-    candidates = propose_candidates(seeds, trajectories, settings, eligible)
+    stats = moments.row_stats(queries) if row_stats is None else row_stats
+    seed_lists = [np.asarray(f, dtype=np.int64)[: settings.seeds] for f in seeds]
+    sizes = [len(f) for f in seed_lists]
+    seed_scores: list[np.ndarray] = []
+    if sum(sizes):
+        seed_vectors = vectors(np.concatenate(seed_lists))
+        rows = np.repeat(np.arange(len(seed_lists)), sizes)
+        sims = np.einsum("nd,nd->n", seed_vectors, np.asarray(queries)[rows])
+        z = (sims - stats[0][-len(queries) :][rows]) / stats[1][-len(queries) :][rows]
+        seed_scores = np.split(z, np.cumsum(sizes)[:-1])
+    candidates = propose_candidates(
+        seed_lists, trajectories, settings, eligible, seed_scores or None
+    )
     return score_candidates(
         queries,
         candidates,
         vectors,
         trajectories,
-        moments.row_stats(queries) if row_stats is None else row_stats,
+        stats,
         settings,
         eligible=eligible,
         top=top,

@@ -143,6 +143,12 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
         default="",
         help="comma-separated sequence lengths L: add <method>+seqL rows and full SeqSLAM",
     )
+    ev.add_argument(
+        "--sequence-contrast",
+        type=int,
+        default=0,
+        help="sequence rows: local contrast window in frames (0: whole-map z-scores)",
+    )
     ev.set_defaults(func=cmd_eval)
 
 
@@ -241,6 +247,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         verify_top=args.verify_top,
         query_stride=args.query_stride,
         sequence=_csv_list(int, args.sequence),
+        sequence_contrast=args.sequence_contrast,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

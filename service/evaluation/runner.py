@@ -86,6 +86,7 @@ class EvalConfig:
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
         sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
+        sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
     """
 
     dataset: Path
@@ -114,6 +115,7 @@ class EvalConfig:
     verify_top: int = 5
     query_stride: int = 1
     sequence: tuple[int, ...] = ()
+    sequence_contrast: int = 0
 
 
 @dataclass
@@ -469,7 +471,14 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         global_row = next((m for m in methods if m.name == "global-only"), None)
         if global_row is not None:
             bases.append((global_row, *_unit_embeddings(first_pass, 0.0)))
-        methods += sequence_methods(bases, dataset, submap_of, config.sequence, config.k)
+        methods += sequence_methods(
+            bases,
+            dataset,
+            submap_of,
+            config.sequence,
+            config.k,
+            SequenceSettings(contrast_window=config.sequence_contrast),
+        )
     for name in config.baselines:
         method, baseline_stages, similarity = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k

@@ -117,10 +117,14 @@ def sequence_methods(
             ranking, used, ms = sequence_ranking(
                 reference, query, trajectories, query_starts, chosen, k
             )
+            contrast = (
+                f"-lc{chosen.contrast_window}" if chosen.contrast_window else "",
+                f", local contrast {chosen.contrast_window}" if chosen.contrast_window else "",
+            )
             rows.append(
                 evaluate_ranking(
-                    f"{method.name}+seq{length}",
-                    f"{method.label} + sequence L={length}",
+                    f"{method.name}+seq{length}{contrast[0]}",
+                    f"{method.label} + sequence L={length}{contrast[1]}",
                     "sequence",
                     ranking,
                     dataset,
@@ -133,6 +137,8 @@ def sequence_methods(
                             "reverse": chosen.reverse,
                             "seeds": chosen.seeds,
                             "neighbourhood": chosen.neighbourhood,
+                            "candidates": chosen.candidates,
+                            "contrast_window": chosen.contrast_window,
                         },
                         "mean_length_used": float(used.mean()) if len(used) else 0.0,
                         "query_ms_note": "sequence scoring only (added to the method's query)",

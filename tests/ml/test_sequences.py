@@ -16,6 +16,7 @@ from service.ml.sequences import (
     consistent_scores,
     decide,
     match_sequence,
+    score_candidates,
     sequence_starts,
 )
 
@@ -232,3 +233,25 @@ def test_settings_reject_nonsense() -> None:
         SequenceSettings(speeds=(0.0,))
     with pytest.raises(ValueError):
         ConsistencySettings(required=0)
+
+
+def test_local_contrast_standardises_against_the_aligned_frames_neighbours() -> None:
+    rng = np.random.default_rng(6)
+    reference = _unit(rng.normal(size=(60, 8)))
+    query = _unit(reference[20:25] + 0.1 * rng.normal(size=(5, 8)))
+    settings = SequenceSettings(length=5, speeds=(1.0,), contrast_window=4)
+    trajectories = Trajectories.single(60)
+    [match] = score_candidates(
+        query,
+        np.array([24]),
+        lambda i: reference[i],
+        trajectories,
+        MapMoments.of(reference).row_stats(query),
+        settings,
+    )
+    expected = 0.0
+    for row, frame in enumerate(range(20, 25)):
+        window = query[row] @ reference[frame - 2 : frame + 3].T
+        expected += (query[row] @ reference[frame] - window.mean()) / window.std()
+    assert match.score == pytest.approx(expected / np.sqrt(5), rel=1e-5)
+    assert match.aligned == (20, 21, 22, 23, 24)

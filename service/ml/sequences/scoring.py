@@ -35,6 +35,9 @@ class SequenceSettings:
     neighbourhood: reference frames either side of each vote's landing place also voted for.
     candidates: places scored exactly: those with the most votes (summed z-scores of the
         seeds that land on them along one speed: a sparse pre-score of the same sum).
+    contrast_window: 0: each similarity is standardised against the whole map (z-score of
+        the query frame's row); w > 0: against the w + 1 reference frames around the aligned
+        one along its trajectory (SeqSLAM's local contrast enhancement; OpenSeqSLAM uses 10).
     """
 
     length: int = 10
@@ -43,13 +46,19 @@ class SequenceSettings:
     seeds: int = 50
     neighbourhood: int = 1
     candidates: int = 64
+    contrast_window: int = 0
 
     def __post_init__(self) -> None:
         if self.length < 1:
             raise ValueError(f"sequence length must be at least 1, got {self.length}")
         if not self.speeds or any(v <= 0 for v in self.speeds):
             raise ValueError(f"speeds must be positive, got {self.speeds}")
-        if self.seeds < 1 or self.neighbourhood < 0 or self.candidates < 1:
+        if (
+            self.seeds < 1
+            or self.neighbourhood < 0
+            or self.candidates < 1
+            or (self.contrast_window < 0)
+        ):
             raise ValueError("seeds and candidates must be >= 1 and neighbourhood >= 0")
 
     @property
@@ -233,13 +242,37 @@ def score_candidates(
         ok = flat >= 0
         ok[ok] = eligible(flat[ok])
         aligned = np.where(ok.reshape(aligned.shape), aligned, -1)
-    used_frames, inverse = _unique_frames(aligned, len(trajectories))
+    half = settings.contrast_window // 2
+    around = aligned[..., None]
+    if half:  # every aligned frame's window along its trajectory: C x S x n x (2 half + 1)
+        around = trajectories.step(around, np.arange(-half, half + 1))
+        around = np.where(aligned[..., None] >= 0, around, -1)
+        if eligible is not None:
+            flat = around.ravel()
+            ok = flat >= 0
+            ok[ok] = eligible(flat[ok])
+            around = np.where(ok.reshape(around.shape), around, -1)
+    used_frames, inverse = _unique_frames(around, len(trajectories))
     similarity = np.zeros((n, len(used_frames) + 1), dtype=np.float64)  # last column: none
     if len(used_frames):
         similarity[:, :-1] = np.asarray(queries, dtype=np.float32) @ vectors(used_frames).T
-    z = (similarity - mean[:, None]) / std[:, None]  # n x U, rows oldest first
     rows = (n - 1 - ages)[None, None, :]
-    z_aligned = np.where(aligned >= 0, z[rows, inverse], 0.0)
+    if half:
+        window_sims = similarity[rows[..., None], inverse]  # C x S x n x W
+        inside = around >= 0
+        count = np.maximum(inside.sum(axis=3), 1)
+        local_mean = np.where(inside, window_sims, 0.0).sum(axis=3) / count
+        local_var = (
+            np.where(inside, (window_sims - local_mean[..., None]) ** 2, 0.0).sum(axis=3) / count
+        )
+        centre = similarity[rows, inverse[..., half]]
+        z_aligned = (centre - local_mean) / np.maximum(np.sqrt(local_var), 1e-3)
+        z_aligned = np.where(aligned >= 0, z_aligned, 0.0)
+        inverse = inverse[..., half]
+    else:
+        inverse = inverse[..., 0]
+        z = (similarity - mean[:, None]) / std[:, None]  # n x U, rows oldest first
+        z_aligned = np.where(aligned >= 0, z[rows, inverse], 0.0)
     length = (aligned >= 0).sum(axis=2)
     score = z_aligned.sum(axis=2) / np.sqrt(np.maximum(length, 1))
     score = np.where(aligned[:, :, 0] >= 0, score, -np.inf)  # the newest frame must align

@@ -130,7 +130,7 @@ def bench_database_read(frames: int) -> None:
                     session.add(to_row(frame.id, features))
         begin = time.perf_counter()
         with sessions() as session:
-            count = sum(len(batch[0]) for batch in iter_stored_vectors(session, atlas_id))
+            count = sum(len(batch) for batch in iter_stored_vectors(session, atlas_id))
         elapsed = time.perf_counter() - begin
     print(
         f"reading stored D and R back from SQLite: {count} frames in {elapsed:.2f} s "

@@ -34,7 +34,7 @@ from service.ml.local_extractors import LocalExtractorConfig, build_local_extrac
 from service.ml.matching import build_matcher
 from service.ml.pipeline import embed_vectors
 from service.ml.two_view import camera_matrix, estimate_two_view
-from service.verification import VerificationConfig, Verifier, View
+from service.ml.verification import VerificationConfig, Verifier, View
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:

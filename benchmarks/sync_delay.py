@@ -25,8 +25,8 @@ import numpy as np
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 
-from service.atlas_service import AtlasService
-from service.change_feed import ChangeFollower
+from service.atlas.catalog import AtlasService
+from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.pipeline import FeaturePipeline

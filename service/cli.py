@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from service.cli_atlas import add_parsers as add_atlas_parsers
 from service.cli_fleet import add_parsers as add_fleet_parsers
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -69,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_parser(commands)
     add_eval_online_parser(commands)
     add_fleet_parsers(commands)
+    add_atlas_parsers(commands)
 
     seed = commands.add_parser("weights", help="pretrained weights in the torch hub cache")
     seed_commands = seed.add_subparsers(dest="weights_command", required=True)
@@ -274,7 +276,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_worker(args: argparse.Namespace) -> int:
     from service.config import Settings
-    from workers.worker import run_worker
+    from service.jobs.worker import run_worker
 
     run_worker(Settings(), workers=args.threads)
     return 0

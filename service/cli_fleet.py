@@ -76,16 +76,12 @@ def _run(action: Any) -> int:
 
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
-    from service.auth import create_key, parse_role
-    from service.storage.db import transaction
+    from service.fleet.keys import issue, parse_role
 
     def action() -> None:
         _, sessions = _sessions()
-        with transaction(sessions) as session:
-            new = create_key(
-                session, name=args.name, role=parse_role(args.role), atlases=args.atlas
-            )
-            row = _key_row(new.key)
+        new = issue(sessions, name=args.name, role=parse_role(args.role), atlases=args.atlas)
+        row = _key_row(new.key)
         print(json.dumps({**row, "token": new.token}, indent=2))
         print("store the token now: it is not shown again", file=sys.stderr)
 
@@ -93,32 +89,29 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_list(_args: argparse.Namespace) -> int:
-    from service.auth import list_keys
+    from service.fleet.keys import listing
 
     def action() -> None:
         _, sessions = _sessions()
-        with sessions() as session:
-            for key in list_keys(session):
-                print(json.dumps(_key_row(key)))
+        for key in listing(sessions):
+            print(json.dumps(_key_row(key)))
 
     return _run(action)
 
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
-    from service.auth import revoke_key
-    from service.storage.db import transaction
+    from service.fleet.keys import revoke
 
     def action() -> None:
         _, sessions = _sessions()
-        with transaction(sessions) as session:
-            key = revoke_key(session, key_id=args.id)
-            print(f"key {key.id} ({key.name}) revoked")
+        key = revoke(sessions, key_id=args.id)
+        print(f"key {key.id} ({key.name}) revoked")
 
     return _run(action)
 
 
 def cmd_snapshot_export(args: argparse.Namespace) -> int:
-    from service.snapshots import export_atlas
+    from service.fleet.snapshots import export_atlas
 
     def action() -> None:
         settings, sessions = _sessions()
@@ -129,7 +122,7 @@ def cmd_snapshot_export(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot_restore(args: argparse.Namespace) -> int:
-    from service.snapshots import restore_atlas
+    from service.fleet.snapshot_restore import restore_atlas
 
     def action() -> None:
         settings, sessions = _sessions()

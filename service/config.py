@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.fleet.snapshot_archive import ArchiveLimits
 from service.ml.images import ImageLimits
 from service.ml.presets import ModelPreset, resolve_preset
 
@@ -44,7 +45,7 @@ class Settings(BaseSettings):
         None,
         ge=1,
         description="RANSAC inliers at or above which a candidate is verified; default: the "
-        "matcher's own (service.verification.DEFAULT_MIN_INLIERS).",
+        "matcher's own (service.ml.verification.DEFAULT_MIN_INLIERS).",
     )
     verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="MNN matcher's ratio test.")
     ransac_threshold_px: float = Field(
@@ -100,6 +101,12 @@ class Settings(BaseSettings):
         "auto",
         description="API keys: 'auto' = required once a key exists, 'required' always, 'off' never.",
     )
+    snapshot_max_member_bytes: int = Field(
+        1024**3, ge=1024, description="Largest member (uncompressed) a snapshot restore reads."
+    )
+    snapshot_max_total_bytes: int = Field(
+        2 * 1024**3, ge=1024, description="Largest sum of members a snapshot restore reads."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
 
@@ -124,6 +131,10 @@ class Settings(BaseSettings):
     @property
     def image_limits(self) -> ImageLimits:
         return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)
+
+    @property
+    def snapshot_limits(self) -> ArchiveLimits:
+        return ArchiveLimits(self.snapshot_max_member_bytes, self.snapshot_max_total_bytes)
 
     def preset(self) -> ModelPreset:
         return resolve_preset(

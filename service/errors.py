@@ -35,6 +35,10 @@ class NotReady(LoopNetError):
     """The service is still starting (models or indexes not loaded yet)."""
 
 
+class AtlasUnavailable(NotReady):
+    """One atlas's model or index cannot be loaded (503 with the reason); the others serve."""
+
+
 class Overloaded(LoopNetError):
     """Inference is saturated (every slot busy, the wait queue full): retry after a while."""
 

@@ -13,13 +13,13 @@ import torch
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas_service import AtlasService
-from service.change_feed import ChangeFollower
+from service.atlas.catalog import AtlasService
+from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
+from service.jobs.queue import Queue
 from service.ml.pipeline import FeaturePipeline
 from service.storage.db import make_engine, make_session_factory, upgrade_database
-from workers.queue import Queue
 
 log = logging.getLogger(__name__)
 

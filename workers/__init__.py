@@ -1,1 +1,1 @@
-"""The job queue (Huey): SQLite storage in the data directory, or Redis when configured."""
+"""The worker process entry point (``python -m workers``); the jobs live in service.jobs."""

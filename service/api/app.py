@@ -21,9 +21,9 @@ from service.api.routes import (
     queries,
     snapshots,
 )
-from service.auth import Authenticator
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
+from service.fleet.keys import Authenticator
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
 

@@ -3,7 +3,7 @@
 Add one as a parameter of a route (``_: OperatorAccess``): it reads the key from
 ``Authorization: Bearer <key>`` or ``X-API-Key``, answers 401 without a valid key and 403 when
 the key's role is too low or the route's ``{atlas}`` path parameter is not one of its atlases.
-The parameter's value is the caller (:class:`~service.auth.Principal`).
+The parameter's value is the caller (:class:`~service.fleet.keys.Principal`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Annotated, overload
 from fastapi import Depends, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from service.auth import Authenticator, Principal, Role
 from service.errors import Forbidden, NotReady
+from service.fleet.keys import Authenticator, Principal, Role
 
 bearer = HTTPBearer(auto_error=False, description="An API key from `loopnet keys create`.")
 api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False)

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import Depends, Path, Request
 
-from service.atlas_service import AtlasService
+from service.atlas.catalog import AtlasService
 from service.runtime import Runtime
 
 

@@ -3,15 +3,16 @@ and their parsing into domain objects: one definition per field, one parser per 
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from typing import Annotated
 
-from fastapi import Form
+from fastapi import Depends, Form
 
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
-from service.atlas_service import AtlasService
-from service.geometry import Intrinsics, Pose
-from service.query_filters import QueryFilter
+from service.atlas.filters import QueryFilter, make_filter
+from service.config import Settings
+from service.ml.geometry import Intrinsics, Pose
 
 # ----- a new frame ---------------------------------------------------------------------------
 
@@ -65,24 +66,51 @@ def intrinsics_from_form(raw: str | None) -> Intrinsics | None:
     return Intrinsics(**parsed.model_dump()) if parsed else None
 
 
-def filter_from_form(
-    service: AtlasService,
-    robot_id: str | None,
-    robots: str,
-    submap: str | None,
-    since: float | None,
-    until: float | None,
-    timestamp: float | None,
-    exclude_recent_frames: int | None,
-    exclude_recent_seconds: float | None,
-) -> QueryFilter:
-    return service.query_filter(
-        robot_id=robot_id or None,
-        robots=robots,
-        submap=submap or None,
-        since=since,
-        until=until,
-        timestamp=timestamp,
-        exclude_recent_frames=exclude_recent_frames,
-        exclude_recent_seconds=exclude_recent_seconds,
+@dataclass(frozen=True)
+class FilterFields:
+    """The filter fields of a query form; the robot asking and the timestamp come from the
+    route (they mean more there: who acts, when the frame was taken)."""
+
+    robots: str
+    submap: str | None
+    since: float | None
+    until: float | None
+    exclude_recent_frames: int | None
+    exclude_recent_seconds: float | None
+
+    def build(
+        self, settings: Settings, *, robot_id: str | None, timestamp: float | None
+    ) -> QueryFilter:
+        """The validated filter (before any CNN runs)."""
+        return make_filter(settings, robot_id=robot_id, timestamp=timestamp, **asdict(self))
+
+
+def filter_fields(
+    robots: Robots = "all",
+    submap: SubmapFilter = None,
+    since: Since = None,
+    until: Until = None,
+    exclude_recent_frames: ExcludeFrames = None,
+    exclude_recent_seconds: ExcludeSeconds = None,
+) -> FilterFields:
+    return FilterFields(robots, submap, since, until, exclude_recent_frames, exclude_recent_seconds)
+
+
+def observe_filter_fields(
+    robots: Robots = "all",
+    submap_filter: Annotated[
+        str | None, Form(description="Only match frames of this submap.")
+    ] = None,
+    since: Since = None,
+    until: Until = None,
+    exclude_recent_frames: ExcludeFrames = None,
+    exclude_recent_seconds: ExcludeSeconds = None,
+) -> FilterFields:
+    """As :func:`filter_fields`; an observation's own ``submap`` is where its frame goes."""
+    return FilterFields(
+        robots, submap_filter, since, until, exclude_recent_frames, exclude_recent_seconds
     )
+
+
+QueryFilterForm = Annotated[FilterFields, Depends(filter_fields)]
+ObserveFilterForm = Annotated[FilterFields, Depends(observe_filter_fields)]

@@ -162,6 +162,10 @@ class ReadyOut(BaseModel):
     preset: str | None = None
     backbone: str | None = None
     local_extractor: str | None = None
+    unavailable_atlases: dict[str, str] = Field(
+        default_factory=dict,
+        description="Atlases that cannot be loaded, with why; they answer 503, the others serve.",
+    )
 
 
 TrainablePart = Literal["fusion", "similarity", "classifier"]

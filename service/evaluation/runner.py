@@ -82,7 +82,7 @@ class EvalConfig:
         retrain_shots: K values (shots per submap) of the retrained rows; empty: none.
         retrain_protocols: ``map`` and/or ``revisit`` (see ``retraining_pass``).
         verify: matchers ("mnn", "lightglue") whose geometric verification of the first
-            extractor's ranking adds a row each (issue 5); empty: none.
+            extractor's ranking adds a row each; empty: none.
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
         sequence: sequence lengths L of the ``+seqL`` rows; empty: none.

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from service.atlas_service import AtlasService
+from service.atlas.catalog import AtlasService
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking

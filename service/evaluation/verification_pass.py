@@ -1,6 +1,6 @@
 """Geometric verification in the evaluation harness: the service's retrieval ranking, its best
-candidates verified by the service's own :class:`~service.verification.Verifier`, re-ranked by
-:func:`~service.verification.rerank`, and scored as a loop-closure decision.
+candidates verified by the service's own :class:`~service.ml.verification.Verifier`, re-ranked by
+:func:`~service.ml.verification.rerank`, and scored as a loop-closure decision.
 
 Keypoints are extracted once per image by the pass's local extractor (only for the queries and
 the references that appear among their verified candidates) and cached beside the feature
@@ -31,7 +31,7 @@ from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractor
-from service.verification import (
+from service.ml.verification import (
     VerificationConfig,
     Verifier,
     View,

@@ -17,7 +17,7 @@ noise either, and re-embedding a large atlas stays cheap.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -105,14 +105,6 @@ class ClassificationHead(nn.Module):
 class SubmapPrediction:
     submap_id: int
     probability: float
-
-
-@dataclass
-class HeadsState:
-    """What a weights file holds besides tensors: the config and the classifier's labels."""
-
-    config: HeadsConfig
-    class_labels: list[int] = field(default_factory=list)
 
 
 class LoopNetHeads(nn.Module):

@@ -30,11 +30,12 @@ class FeaturePipeline:
         """What the stored features mean; an atlas only accepts features of its signature."""
         return preset_signature(self.preset)
 
-    def heads_config(self, alpha: float | None = None) -> HeadsConfig:
+    def heads_config(self) -> HeadsConfig:
+        """The untrained heads' config for this pipeline's features and preset."""
         return HeadsConfig(
             local_dim=self.local.descriptor_dim,
             global_dim=self.backbone.dim,
-            alpha=self.preset.alpha if alpha is None else alpha,
+            alpha=self.preset.alpha,
         )
 
     def extract(self, rgb: np.ndarray) -> FrameFeatures:

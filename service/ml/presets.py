@@ -1,11 +1,11 @@
 """Named model presets: which extractor, at what size, with which backbone.
 
-``default`` is sized for a CPU (DISK at long side 512: about 1.1 s a frame on 2 cores, against
-4.7 s at 1024); ``paper`` uses the paper's settings (DISK at 1024, ResNet-18); ``fast`` is for
-CPU-only robots and servers that must answer within tens of milliseconds (XFeat at long side
-320, MobileNetV2 at 160 px: about an eighth of ``default``'s cost). Figures come from
-``benchmarks/stage_latency.py`` and ``benchmarks/http_latency.py``; accuracy from
-``loopnet eval`` (benchmarks/RESULTS.md).
+``default`` is sized for a CPU (DISK at long side 512, several times cheaper than at 1024);
+``paper`` uses the paper's settings (DISK at 1024, ResNet-18); ``fast`` is for CPU-only robots
+and servers that must answer within tens of milliseconds (XFeat at long side 320, MobileNetV2
+at 160 px). Timings come from ``benchmarks/stage_latency.py`` and
+``benchmarks/http_latency.py``, accuracy from ``loopnet eval``; the figures are in
+benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations

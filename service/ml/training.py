@@ -97,7 +97,7 @@ def split_shots(submaps: np.ndarray, shots: int) -> tuple[np.ndarray, np.ndarray
     Frames are taken in stored order (ingest order), so the shots cover each submap's span. A
     submap of two or more frames always keeps one out of the shots: without any validation
     frame, early stopping and best-epoch keeping have nothing to judge by, and a run over all
-    epochs overfits the shots (measured: Recall@1 0.825 -> 0.620 on Gardens Point).
+    epochs overfits the shots (benchmarks/RESULTS.md has the measurement).
     """
     train: list[int] = []
     for submap in np.unique(submaps):

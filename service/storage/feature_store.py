@@ -4,6 +4,7 @@ geometric verification without running a CNN again."""
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import select
@@ -51,13 +52,24 @@ def load_local_features(session: Session, frame_ids: Sequence[int]) -> dict[int,
     return {row.frame_id: local_features_of(row) for row in rows}
 
 
-StoredVectors = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]
+@dataclass(frozen=True)
+class StoredVectors:
+    """The two small stored vectors of frames, row-aligned with their ids, submaps and robots."""
+
+    ids: np.ndarray  # int64 frame ids
+    local: np.ndarray  # D vectors (aggregated local descriptors)
+    global_: np.ndarray  # R vectors (global CNN descriptor)
+    submaps: np.ndarray  # int64 submap ids
+    robots: list[str]
+
+    def __len__(self) -> int:
+        return len(self.ids)
 
 
 def iter_stored_vectors(
     session: Session, atlas_id: int, *, frame_ids: Sequence[int] | None = None, batch: int = 4096
 ) -> Iterator[StoredVectors]:
-    """Batches of (frame ids, local vectors D, global vectors R, submap ids, robot ids).
+    """Batches of stored vectors in frame id order.
 
     Only the two small vectors are read, never the keypoint blobs.
     """
@@ -84,24 +96,24 @@ def iter_stored_vectors(
         robots = [r.robot_id for r in rows]
         local = np.stack([np.frombuffer(r.local_vector, "<f4") for r in rows])
         global_ = np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows])
-        yield ids, local, global_, submaps, robots
+        yield StoredVectors(ids, local, global_, submaps, robots)
 
 
 def load_stored_vectors(session: Session, atlas_id: int) -> StoredVectors:
-    """All frames' (ids, D, R, submap ids, robot ids) of an atlas, concatenated."""
+    """All frames' stored vectors of an atlas, concatenated."""
     batches = list(iter_stored_vectors(session, atlas_id))
     if not batches:
-        return (
+        return StoredVectors(
             np.zeros(0, np.int64),
             np.zeros((0, 0), np.float32),
             np.zeros((0, 0), np.float32),
             np.zeros(0, np.int64),
             [],
         )
-    return (
-        np.concatenate([b[0] for b in batches]),
-        np.concatenate([b[1] for b in batches]),
-        np.concatenate([b[2] for b in batches]),
-        np.concatenate([b[3] for b in batches]),
-        [robot for b in batches for robot in b[4]],
+    return StoredVectors(
+        np.concatenate([b.ids for b in batches]),
+        np.concatenate([b.local for b in batches]),
+        np.concatenate([b.global_ for b in batches]),
+        np.concatenate([b.submaps for b in batches]),
+        [robot for b in batches for robot in b.robots],
     )

@@ -9,10 +9,11 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from service.errors import Conflict, NotFound
-from service.storage.models import Job, utcnow
+from service.storage.models import Job, JobStatus, utcnow
 
-ACTIVE = ("queued", "running")
-FINISHED = ("succeeded", "failed", "cancelled")
+# the values, as the column holds them (drivers need not know the enum)
+ACTIVE = (JobStatus.QUEUED.value, JobStatus.RUNNING.value)
+FINISHED = (JobStatus.SUCCEEDED.value, JobStatus.FAILED.value, JobStatus.CANCELLED.value)
 
 
 def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, Any]) -> Job:
@@ -25,7 +26,7 @@ def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, 
     job = Job(
         atlas_id=atlas_id,
         kind=kind,
-        status="queued",
+        status=JobStatus.QUEUED.value,
         progress=0.0,
         message="queued",
         params=params,
@@ -59,16 +60,20 @@ def start_job(session: Session, *, job_id: int) -> Job | None:
     now = utcnow()
     claimed = session.execute(
         update(Job)
-        .where(Job.id == job_id, Job.status == "queued", Job.cancel_requested.is_(False))
-        .values(status="running", started_at=now, updated_at=now, message="started")
+        .where(
+            Job.id == job_id, Job.status == JobStatus.QUEUED.value, Job.cancel_requested.is_(False)
+        )
+        .values(status=JobStatus.RUNNING.value, started_at=now, updated_at=now, message="started")
         .execution_options(synchronize_session=False)
     )
     job = session.get(Job, job_id, populate_existing=True)
     if job is None:
         return None
     if claimed.rowcount != 1:  # type: ignore[attr-defined]
-        if job.status == "queued" and job.cancel_requested:
-            finish_job(session, job=job, status="cancelled", message="cancelled before it started")
+        if job.status == JobStatus.QUEUED and job.cancel_requested:
+            finish_job(
+                session, job=job, status=JobStatus.CANCELLED, message="cancelled before it started"
+            )
         return None
     return job
 
@@ -76,7 +81,9 @@ def start_job(session: Session, *, job_id: int) -> Job | None:
 def stale_jobs(session: Session, *, status: str, not_updated_since: datetime) -> list[Job]:
     """Jobs in ``status`` whose row has not changed since the given time (oldest first)."""
     query = (
-        select(Job).where(Job.status == status, Job.updated_at < not_updated_since).order_by(Job.id)
+        select(Job)
+        .where(Job.status == JobStatus(status).value, Job.updated_at < not_updated_since)
+        .order_by(Job.id)
     )
     return list(session.scalars(query))
 
@@ -103,8 +110,12 @@ def finish_job(
     model_version: int | None = None,
 ) -> None:
     assert status in FINISHED, status
-    job.status, job.message, job.error = status, message[:500], error[:4000] if error else None
-    if status == "succeeded":
+    job.status, job.message, job.error = (
+        JobStatus(status).value,
+        message[:500],
+        error[:4000] if error else None,
+    )
+    if status == JobStatus.SUCCEEDED:
         job.progress = 100.0
     if metrics is not None:
         job.metrics = metrics
@@ -118,8 +129,10 @@ def request_cancel(session: Session, *, job: Job) -> Job:
         raise Conflict(f"job {job.id} has already {job.status}")
     job.cancel_requested = True
     job.updated_at = utcnow()
-    if job.status == "queued":
-        finish_job(session, job=job, status="cancelled", message="cancelled before it started")
+    if job.status == JobStatus.QUEUED:
+        finish_job(
+            session, job=job, status=JobStatus.CANCELLED, message="cancelled before it started"
+        )
     else:
         job.message = "cancellation requested"
     return job

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from datetime import UTC, datetime
 from typing import Any
 
@@ -160,6 +161,16 @@ class ModelVersion(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
 
 
+class JobStatus(enum.StrEnum):
+    """Where a job stands; the row stores the value."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
 class Job(Base):
     """A queued piece of work (retraining) as the API reports it; the queue holds only its id."""
 
@@ -170,7 +181,7 @@ class Job(Base):
     atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
     kind: Mapped[str] = mapped_column(String(32))
     # queued -> running -> succeeded | failed | cancelled (or queued -> cancelled)
-    status: Mapped[str] = mapped_column(String(16), default="queued")
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED.value)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     message: Mapped[str] = mapped_column(String(500), default="")
     params: Mapped[dict[str, Any]]

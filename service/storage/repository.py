@@ -9,10 +9,10 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.errors import Conflict, NotFound
-from service.geometry import Intrinsics, Pose
 from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
 from service.storage.feature_store import to_row
-from service.storage.models import Atlas, Frame, FrameFeatureRow, ModelVersion, Submap
+from service.storage.models import Atlas, Frame, ModelVersion, Submap
 
 
 def create_atlas(
@@ -37,7 +37,10 @@ def get_atlas(session: Session, *, name: str) -> Atlas:
 
 
 def list_atlases(session: Session) -> list[Atlas]:
-    return list(session.scalars(select(Atlas).order_by(Atlas.name)))
+    """Every atlas but those a snapshot restore is still writing (named with a leading '.',
+    which atlas names cannot start with)."""
+    query = select(Atlas).where(~Atlas.name.startswith(".")).order_by(Atlas.name)
+    return list(session.scalars(query))
 
 
 def count_frames(session: Session, *, atlas_id: int, submap_id: int | None = None) -> int:
@@ -135,13 +138,6 @@ def get_frame(session: Session, *, atlas: Atlas, frame_id: int) -> Frame:
     if frame is None or frame.atlas_id != atlas.id:
         raise NotFound(f"frame {frame_id} does not exist in atlas '{atlas.name}'")
     return frame
-
-
-def get_frame_features(session: Session, *, frame_id: int) -> FrameFeatureRow:
-    row = session.get(FrameFeatureRow, frame_id)
-    if row is None:
-        raise NotFound(f"frame {frame_id} has no stored features")
-    return row
 
 
 def frames_by_id(session: Session, *, frame_ids: list[int]) -> dict[int, Frame]:

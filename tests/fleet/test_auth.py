@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.auth import Role, create_key, hash_token
+from service.fleet.keys import Role, create_key, hash_token
 from service.storage.db import transaction
 from service.storage.models import ApiKey
 from tests.api.helpers import stored_state

@@ -5,151 +5,16 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import tarfile
-from contextlib import redirect_stderr, redirect_stdout
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.cli import main
-from service.loop_closures import record_if_inter_robot
-from service.retraining import JobRunner
-from service.storage import jobs
-from service.storage import repository as repo
-from service.storage.db import transaction
 from tests.api.helpers import add_frame, create_atlas
-from tests.conftest import (
-    TEST_LONG_SIDE,
-    TEST_MAX_KEYPOINTS,
-    gardens_point_day_night,
-    make_settings,
-    wait_ready,
-)
-
-QUERIES = (1, 4, 7)
-
-
-@dataclass
-class Ran:
-    returncode: int
-    stdout: str
-    stderr: str
-
-
-def loopnet(env: dict[str, str], *args: str) -> Ran:
-    """``loopnet ARGS`` in this process (the CLI's own code) with ``env`` set meanwhile."""
-    saved = {name: os.environ.get(name) for name in env}
-    os.environ.update(env)
-    out, err = io.StringIO(), io.StringIO()
-    try:
-        with redirect_stdout(out), redirect_stderr(err):
-            code = main(list(args))
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-    return Ran(code, out.getvalue(), err.getvalue())
-
-
-def deployment_env(data_dir: Path, database_url: str | None = None) -> dict[str, str]:
-    env = {
-        "LOOPNET_DATA_DIR": str(data_dir),
-        "LOOPNET_LONG_SIDE": str(TEST_LONG_SIDE),
-        "LOOPNET_MAX_KEYPOINTS": str(TEST_MAX_KEYPOINTS),
-    }
-    if database_url:
-        env["LOOPNET_DATABASE_URL"] = database_url
-    return env
-
-
-def answers(client: TestClient, atlas: str) -> list[dict]:
-    """Query answers without what legitimately differs between deployments (ids, timings)."""
-    out = []
-    for i in QUERIES:
-        body = client.post(
-            f"/v1/atlases/{atlas}/query",
-            data={"k": "4"},
-            files={"image": ("q.jpg", gardens_point_day_night(i, "query"))},
-        ).json()
-        out.append(
-            {
-                "model_version": body["model_version"],
-                "loop_closure": body["loop_closure"],
-                "predicted": (
-                    body["predicted_submap"]["submap"],
-                    round(body["predicted_submap"]["probability"] or 0, 5),
-                ),
-                "candidates": [
-                    (c["submap"], c["robot_id"], round(c["similarity"], 5))
-                    for c in body["candidates"]
-                ],
-            }
-        )
-    return out
-
-
-@pytest.fixture(scope="module")
-def exported(
-    tmp_path_factory: pytest.TempPathFactory, pipeline
-) -> tuple[Path, list[dict], list[dict]]:  # type: ignore[no-untyped-def]
-    """A SQLite deployment's atlas (two robots, a trained version, one inter-robot closure),
-    its answers, its loop closures, and its snapshot file."""
-    tmp_path = tmp_path_factory.mktemp("snapshot-source")
-    settings = make_settings(tmp_path / "source")
-    with TestClient(create_app(settings, pipeline=pipeline)) as client:
-        wait_ready(client)
-        create_atlas(client, submaps=("s0", "s1"))
-        for i in range(8):
-            add_frame(
-                client,
-                gardens_point_day_night(i, "ref"),
-                submap=f"s{i // 4}",
-                robot="robot-a" if i % 2 else "robot-b",
-            )
-        service = client.app.state.runtime.service  # type: ignore[attr-defined]
-        with transaction(service.sessions) as session:
-            atlas_id = repo.get_atlas(session, name="campus").id
-            job_id = jobs.create_job(
-                session,
-                atlas_id=atlas_id,
-                kind="retrain",
-                params={"shots": 2, "epochs": 20, "embed_dim": 32},
-            ).id
-        JobRunner(settings, service.sessions).run(job_id)
-        result = service.query(
-            atlas_name="campus", image_bytes=gardens_point_day_night(3, "ref"), k=1
-        )
-        assert result.loop_closure and result.match is not None
-        assert result.match.robot_id == "robot-a"
-        assert record_if_inter_robot(
-            service.sessions, robot_id="robot-c", result=result, source="query"
-        )
-        assert (
-            record_if_inter_robot(
-                service.sessions, robot_id="robot-a", result=result, source="query"
-            )
-            is None
-        )  # the robot's own frame: not an inter-robot closure
-        before = answers(client, "campus")
-        closures = client.get("/v1/atlases/campus/loop-closures").json()
-        assert [(c["robot_id"], c["matched_robot_id"]) for c in closures] == [
-            ("robot-c", "robot-a")
-        ]
-        assert client.get("/v1/atlases/campus/loop-closures?robot=robot-z").json() == []
-    assert before[0]["model_version"] == 2
-    archive = tmp_path / "campus.snapshot.tar"
-    made = loopnet(
-        deployment_env(tmp_path / "source"), "snapshot", "export", "campus", str(archive)
-    )
-    assert made.returncode == 0, made.stderr
-    assert '"frames": 8' in made.stdout
-    return archive, before, closures
+from tests.conftest import gardens_point_day_night, make_settings, wait_ready
+from tests.fleet.snapshot_helpers import answers, deployment_env, loopnet
 
 
 @pytest.mark.slow

@@ -6,7 +6,7 @@ import pytest
 
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
-from service.verification import VerificationConfig, Verifier, View, default_min_inliers
+from service.ml.verification import VerificationConfig, Verifier, View, default_min_inliers
 from tests.conftest import DATA_DIR, gardens_point_day_night
 
 

@@ -23,7 +23,7 @@ import pytest
 from sqlalchemy import func, select
 
 from benchmarks.load import LiveServer
-from service.atlas_service import AtlasService
+from service.atlas.catalog import AtlasService
 from service.index import AtlasIndex
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory

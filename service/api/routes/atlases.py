@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Response, status
 
 from service.api.auth import AdminAccess, OperatorAccess, RobotAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
-from service.storage import repository as repo
-from service.storage.db import transaction
-from service.storage.models import ModelVersion
+from service.atlas import reads
+from service.atlas.model_versions import VersionConfig
+
+if TYPE_CHECKING:
+    from service.storage.models import ModelVersion
 
 router = APIRouter(tags=["atlases"])
 NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
@@ -26,24 +28,17 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
 )
 def create_atlas(body: AtlasIn, service: ServiceDep, _: AdminAccess) -> AtlasOut:
     service.create_atlas(body.name, body.description)
-    with service.sessions() as session:
-        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=body.name)))
+    return AtlasOut(**reads.atlas_summary(service.sessions, body.name))
 
 
 @router.get("/atlases", response_model=list[AtlasOut], summary="List atlases")
 def list_atlases(service: ServiceDep, caller: RobotAccess) -> list[AtlasOut]:
-    with service.sessions() as session:
-        return [
-            AtlasOut(**service.atlas_summary(session, atlas))
-            for atlas in repo.list_atlases(session)
-            if caller.may_use(atlas.name)
-        ]
+    return [AtlasOut(**s) for s in reads.atlas_summaries(service.sessions, caller.may_use)]
 
 
 @router.get("/atlases/{atlas}", response_model=AtlasOut, responses=NOT_FOUND)
 def get_atlas(atlas: str, service: ServiceDep, _: RobotAccess) -> AtlasOut:
-    with service.sessions() as session:
-        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=atlas)))
+    return AtlasOut(**reads.atlas_summary(service.sessions, atlas))
 
 
 @router.delete(
@@ -71,9 +66,8 @@ def create_submap(atlas: str, body: SubmapIn, service: ServiceDep, _: RobotAcces
 
 @router.get("/atlases/{atlas}/submaps", response_model=list[SubmapOut], responses=NOT_FOUND)
 def list_submaps(atlas: str, service: ServiceDep, _: RobotAccess) -> list[SubmapOut]:
-    with service.sessions() as session:
-        rows = repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
-        return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
+    rows = reads.submaps_with_counts(service.sessions, atlas)
+    return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
 
 
 @router.delete(
@@ -92,7 +86,7 @@ def model_version_out(version: ModelVersion) -> ModelVersionOut:
     return ModelVersionOut(
         version=version.version,
         is_active=version.is_active,
-        trained=bool(version.config.get("trained")),
+        trained=VersionConfig.of(version).trained,
         config=version.config,
         metrics=version.metrics,
         created_at=version.created_at,
@@ -106,10 +100,7 @@ def model_version_out(version: ModelVersion) -> ModelVersionOut:
     summary="List the atlas's model versions",
 )
 def list_models(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[ModelVersionOut]:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        versions = repo.list_model_versions(session, atlas_id=found.id)
-        return [model_version_out(v) for v in versions]
+    return [model_version_out(v) for v in reads.model_versions(service.sessions, atlas)]
 
 
 @router.post(
@@ -122,9 +113,4 @@ def list_models(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[Mode
 def activate_model(
     atlas: str, version: RowId, service: ServiceDep, _: OperatorAccess
 ) -> ModelVersionOut:
-    with transaction(service.sessions) as session:
-        found = repo.get_atlas(session, name=atlas)
-        activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
-        atlas_id, out = found.id, model_version_out(activated)
-    service.refresh(atlas_id)
-    return out
+    return model_version_out(service.activate_version(atlas, version))

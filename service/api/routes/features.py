@@ -16,31 +16,25 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
 from service.api.forms import (
-    ExcludeFrames,
-    ExcludeSeconds,
     FrameIntrinsics,
     FrameRobot,
     PoseField,
+    QueryFilterForm,
     QueryIntrinsics,
     RobotId,
-    Robots,
-    Since,
-    SubmapFilter,
     SubmapName,
     Timestamp,
-    Until,
-    filter_from_form,
     intrinsics_from_form,
     pose_from_form,
 )
 from service.api.routes.frames import get_frame
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.atlas_service import AtlasService
+from service.atlas import reads
+from service.atlas.catalog import AtlasService
+from service.atlas.loop_closures import record_if_inter_robot
 from service.features_payload import decode_features
-from service.loop_closures import record_if_inter_robot
 from service.ml.features import FrameFeatures
-from service.storage import repository as repo
 
 router = APIRouter(tags=["features"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -58,8 +52,7 @@ PAYLOAD_DOC = (
 def read_features(service: AtlasService, atlas: str, upload: UploadFile) -> FrameFeatures:
     """The checked features of a payload posted for ``atlas`` (a 4xx before any write)."""
     data = read_image_upload(upload, service.settings.max_upload_bytes)
-    with service.sessions() as session:
-        signature = repo.get_atlas(session, name=atlas).feature_signature
+    signature = reads.feature_signature(service.sessions, atlas)
     return decode_features(data, signature, max_image_pixels=service.settings.max_image_pixels)
 
 
@@ -104,31 +97,16 @@ def query_features(
     service: ServiceDep,
     caller: RobotAccess,
     features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
+    filters: QueryFilterForm,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: RobotId = None,
-    robots: Robots = "all",
-    submap: SubmapFilter = None,
-    since: Since = None,
-    until: Until = None,
     timestamp: Annotated[
         float | None, Form(description="Capture time of the query frame, seconds.")
     ] = None,
     intrinsics: QueryIntrinsics = None,
-    exclude_recent_frames: ExcludeFrames = None,
-    exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
     robot_id = acting_robot(caller, robot_id)
-    query_filter = filter_from_form(
-        service,
-        robot_id,
-        robots,
-        submap,
-        since,
-        until,
-        timestamp,
-        exclude_recent_frames,
-        exclude_recent_seconds,
-    )
+    query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
     start = time.perf_counter()
     decoded = read_features(service, atlas, features)
     decode_ms = (time.perf_counter() - start) * 1000.0

@@ -19,8 +19,7 @@ from service.api.forms import (
 )
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import read_image_upload
-from service.storage import repository as repo
-from service.storage.models import Frame
+from service.atlas import reads
 
 router = APIRouter(tags=["frames"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -58,9 +57,7 @@ def add_frame(
         pose=pose_from_form(pose),
         intrinsics=intrinsics_from_form(intrinsics),
     )
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        return frame_out(found.name, repo.get_frame(session, atlas=found, frame_id=frame.id))
+    return frame_out(reads.frame_record(service.sessions, atlas, frame.id))
 
 
 @router.get(
@@ -70,13 +67,11 @@ def add_frame(
     summary="A frame's metadata",
 )
 def get_frame(atlas: str, frame_id: RowId, service: ServiceDep, _: RobotAccess) -> FrameOut:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
-        return frame_out(found.name, frame)
+    return frame_out(reads.frame_record(service.sessions, atlas, frame_id))
 
 
-def frame_out(atlas: str, frame: Frame) -> FrameOut:
+def frame_out(record: reads.FrameRecord) -> FrameOut:
+    frame = record.frame
     pose = None
     if frame.qw is not None:
         pose = PoseIn(
@@ -88,8 +83,8 @@ def frame_out(atlas: str, frame: Frame) -> FrameOut:
         intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)  # type: ignore[arg-type]
     return FrameOut(
         frame_id=frame.id,
-        atlas=atlas,
-        submap=frame.submap.name,
+        atlas=record.atlas,
+        submap=record.submap,
         robot_id=frame.robot_id,
         timestamp=frame.timestamp,
         pose=pose,

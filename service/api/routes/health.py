@@ -25,13 +25,16 @@ async def health() -> HealthOut:
 )
 def ready(runtime: RuntimeDep) -> ReadyOut | JSONResponse:
     if runtime.ready and runtime.database_reachable():
-        preset = runtime.service.pipeline.preset
+        service = runtime.service
+        preset = service.pipeline.preset
+        unavailable = service.unavailable_atlases()
         return ReadyOut(
             ready=True,
-            detail="ready",
+            detail=f"ready; {len(unavailable)} atlas(es) unavailable" if unavailable else "ready",
             preset=preset.name,
             backbone=preset.backbone.name,
             local_extractor=preset.local.name,
+            unavailable_atlases=unavailable,
         )
     if runtime.error:
         detail = f"start-up failed: {runtime.error}"

@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, status
 
 from service.api.auth import OperatorAccess
 from service.api.deps import RowId, RuntimeDep, ServiceDep
 from service.api.schemas import ErrorOut, JobIn, JobOut
-from service.errors import InvalidInput, NotReady
-from service.ml.training import TrainingConfig
-from service.storage import jobs
-from service.storage import repository as repo
-from service.storage.db import transaction
-from service.storage.models import Job
+from service.jobs import submit
+
+if TYPE_CHECKING:
+    from service.storage.models import Job
 
 router = APIRouter(tags=["jobs"])
 ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
@@ -39,49 +37,24 @@ def job_out(atlas: str, job: Job) -> JobOut:
 def submit_job(
     atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
 ) -> JobOut:
-    params = body.params.model_dump()
-    try:
-        TrainingConfig(**{**params, "train": tuple(params["train"])})
-    except ValueError as exc:
-        raise InvalidInput(str(exc)) from exc
-    with transaction(service.sessions) as session:
-        found = repo.get_atlas(session, name=atlas)
-        populated = repo.count_populated_submaps(session, atlas_id=found.id)
-        if populated < 2:
-            raise InvalidInput(
-                f"retraining needs frames in at least two submaps; atlas '{atlas}' has {populated}"
-            )
-        job = jobs.create_job(session, atlas_id=found.id, kind=body.kind, params=params)
-        job_id = job.id
-    try:
-        runtime.queue.enqueue(job_id)
-    except Exception as exc:
-        with transaction(service.sessions) as session:
-            job = jobs.get_job(session, job_id=job_id)
-            jobs.finish_job(
-                session,
-                job=job,
-                status="failed",
-                message="could not be queued",
-                error=f"{type(exc).__name__}: {exc}",
-            )
-        raise NotReady(f"the job queue is unavailable: {exc}") from exc
-    with service.sessions() as session:
-        return job_out(atlas, jobs.get_job(session, job_id=job_id))
+    job = submit.submit_job(
+        service.sessions,
+        runtime.queue,
+        atlas=atlas,
+        kind=body.kind,
+        params=body.params.model_dump(),
+    )
+    return job_out(atlas, job)
 
 
 @router.get("/atlases/{atlas}/jobs", response_model=list[JobOut], responses=ERRORS)
 def list_jobs(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[JobOut]:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        return [job_out(atlas, job) for job in jobs.list_jobs(session, atlas_id=found.id)]
+    return [job_out(atlas, job) for job in submit.list_jobs(service.sessions, atlas=atlas)]
 
 
 @router.get("/atlases/{atlas}/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
 def get_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        return job_out(atlas, jobs.get_job(session, job_id=job_id, atlas_id=found.id))
+    return job_out(atlas, submit.get_job(service.sessions, atlas=atlas, job_id=job_id))
 
 
 @router.post(
@@ -91,9 +64,4 @@ def get_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -
     summary="Cancel a queued job, or ask a running one to stop",
 )
 def cancel_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
-    with transaction(service.sessions) as session:
-        found = repo.get_atlas(session, name=atlas)
-        job = jobs.request_cancel(
-            session, job=jobs.get_job(session, job_id=job_id, atlas_id=found.id)
-        )
-        return job_out(atlas, job)
+    return job_out(atlas, submit.cancel_job(service.sessions, atlas=atlas, job_id=job_id))

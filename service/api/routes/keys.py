@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, status
 
 from service.api.auth import AdminAccess
 from service.api.deps import RowId, RuntimeDep
 from service.api.schemas import ApiKeyIn, ApiKeyOut, ErrorOut, NewApiKeyOut
-from service.auth import Role, create_key, list_keys, revoke_key
 from service.errors import NotReady
-from service.storage.db import transaction
-from service.storage.models import ApiKey
+from service.fleet import keys
+from service.fleet.keys import Role
+
+if TYPE_CHECKING:
+    from service.storage.models import ApiKey
 
 router = APIRouter(tags=["keys"])
 ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorOut}, 403: {"model": ErrorOut}}
@@ -36,15 +38,13 @@ def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
     summary="Create an API key",
 )
 def create(body: ApiKeyIn, runtime: RuntimeDep, _: AdminAccess) -> NewApiKeyOut:
-    with transaction(_sessions(runtime)) as session:
-        new = create_key(session, name=body.name, role=Role[body.role], atlases=body.atlases)
-        return NewApiKeyOut(**key_out(new.key).model_dump(), token=new.token)
+    new = keys.issue(_sessions(runtime), name=body.name, role=Role[body.role], atlases=body.atlases)
+    return NewApiKeyOut(**key_out(new.key).model_dump(), token=new.token)
 
 
 @router.get("/keys", response_model=list[ApiKeyOut], responses=ERRORS, summary="List API keys")
 def list_all(runtime: RuntimeDep, _: AdminAccess) -> list[ApiKeyOut]:
-    with _sessions(runtime)() as session:
-        return [key_out(key) for key in list_keys(session)]
+    return [key_out(key) for key in keys.listing(_sessions(runtime))]
 
 
 @router.delete(
@@ -54,5 +54,4 @@ def list_all(runtime: RuntimeDep, _: AdminAccess) -> list[ApiKeyOut]:
     summary="Revoke an API key",
 )
 def revoke(key_id: RowId, runtime: RuntimeDep, _: AdminAccess) -> ApiKeyOut:
-    with transaction(_sessions(runtime)) as session:
-        return key_out(revoke_key(session, key_id=key_id))
+    return key_out(keys.revoke(_sessions(runtime), key_id=key_id))

@@ -10,9 +10,8 @@ from fastapi import APIRouter, Query
 from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, LoopClosureOut
-from service.atlas_service import validate_name
-from service.loop_closures import list_loop_closures
-from service.storage import repository as repo
+from service.atlas import reads
+from service.atlas.names import validate_name
 
 router = APIRouter(tags=["loop closures"])
 
@@ -41,20 +40,18 @@ def loop_closures(
         validate_name("robot", robot)
     if since is not None and since.tzinfo is None:
         since = since.replace(tzinfo=UTC)
-    with service.sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        rows = list_loop_closures(session, atlas_id=found.id, robot=robot, since=since, limit=limit)
-        return [
-            LoopClosureOut(
-                id=row.id,
-                robot_id=row.robot_id,
-                frame_id=row.frame_id,
-                matched_robot_id=row.matched_robot_id,
-                submap=submap,
-                similarity=row.similarity,
-                model_version=row.model_version,
-                source=row.source,
-                created_at=row.created_at,
-            )
-            for row, submap in rows
-        ]
+    rows = reads.loop_closures(service.sessions, atlas, robot=robot, since=since, limit=limit)
+    return [
+        LoopClosureOut(
+            id=row.id,
+            robot_id=row.robot_id,
+            frame_id=row.frame_id,
+            matched_robot_id=row.matched_robot_id,
+            submap=submap,
+            similarity=row.similarity,
+            model_version=row.model_version,
+            source=row.source,
+            created_at=row.created_at,
+        )
+        for row, submap in rows
+    ]

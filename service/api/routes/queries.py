@@ -10,24 +10,19 @@ from fastapi import APIRouter, File, Form, UploadFile
 from service.api.auth import RobotAccess, acting_robot
 from service.api.deps import ServiceDep
 from service.api.forms import (
-    ExcludeFrames,
-    ExcludeSeconds,
     FrameRobot,
+    ObserveFilterForm,
     PoseField,
+    QueryFilterForm,
     QueryIntrinsics,
     RobotId,
-    Robots,
-    Since,
-    SubmapFilter,
     Timestamp,
-    Until,
-    filter_from_form,
     intrinsics_from_form,
     pose_from_form,
 )
 from service.api.schemas import ErrorOut, ObserveOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.loop_closures import record_if_inter_robot
+from service.atlas.loop_closures import record_if_inter_robot
 
 router = APIRouter(tags=["queries"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -56,31 +51,16 @@ def query(
     service: ServiceDep,
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
+    filters: QueryFilterForm,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     robot_id: RobotId = None,
-    robots: Robots = "all",
-    submap: SubmapFilter = None,
-    since: Since = None,
-    until: Until = None,
     timestamp: Annotated[
         float | None, Form(description="Capture time of the query image, seconds.")
     ] = None,
     intrinsics: QueryIntrinsics = None,
-    exclude_recent_frames: ExcludeFrames = None,
-    exclude_recent_seconds: ExcludeSeconds = None,
 ) -> QueryOut:
     robot_id = acting_robot(caller, robot_id)
-    query_filter = filter_from_form(
-        service,
-        robot_id,
-        robots,
-        submap,
-        since,
-        until,
-        timestamp,
-        exclude_recent_frames,
-        exclude_recent_seconds,
-    )
+    query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
     result = service.query(
         atlas_name=atlas,
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
@@ -111,31 +91,14 @@ def observe(
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
     robot_id: FrameRobot,
+    filters: ObserveFilterForm,
     timestamp: Timestamp = None,
     pose: PoseField = None,
     intrinsics: QueryIntrinsics = None,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
-    robots: Robots = "all",
-    submap_filter: Annotated[
-        str | None, Form(description="Only match frames of this submap.")
-    ] = None,
-    since: Since = None,
-    until: Until = None,
-    exclude_recent_frames: ExcludeFrames = None,
-    exclude_recent_seconds: ExcludeSeconds = None,
 ) -> ObserveOut:
     robot_id = acting_robot(caller, robot_id)
-    query_filter = filter_from_form(
-        service,
-        robot_id,
-        robots,
-        submap_filter,
-        since,
-        until,
-        timestamp,
-        exclude_recent_frames,
-        exclude_recent_seconds,
-    )
+    query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
     result, frame = service.observe(
         atlas_name=atlas,
         submap_name=submap,

@@ -14,8 +14,9 @@ from starlette.background import BackgroundTask
 from service.api.auth import AdminAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import AtlasOut, ErrorOut
-from service.snapshots import export_atlas, restore_atlas
-from service.storage import repository as repo
+from service.atlas import reads
+from service.fleet.snapshot_restore import restore_atlas
+from service.fleet.snapshots import export_atlas
 
 router = APIRouter(tags=["snapshots"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -70,5 +71,4 @@ def restore(
         with path.open("wb") as out:
             shutil.copyfileobj(archive.file, out)
         restored = restore_atlas(service.settings, service.sessions, path, name=name)
-    with service.sessions() as session:
-        return AtlasOut(**service.atlas_summary(session, repo.get_atlas(session, name=restored)))
+    return AtlasOut(**reads.atlas_summary(service.sessions, restored))

@@ -1,0 +1,197 @@
+"""The application's facade over atlases: the catalog (atlases, submaps) and the entry points
+the API, the CLI and the evaluation harness call for ingest and queries.
+
+It owns the feature pipeline (CNNs), the database session factory, the inference gate and the
+loaded state of every atlas; the work itself lives in :mod:`service.atlas.state`,
+:mod:`service.atlas.ingest` and :mod:`service.atlas.query`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.atlas import model_versions as models_store
+from service.atlas.filters import QueryFilter, make_filter
+from service.atlas.ingest import FrameIngest
+from service.atlas.names import validate_name
+from service.atlas.query import AtlasQueries
+from service.atlas.reads import unavailable_atlases
+from service.atlas.results import QueryResult
+from service.atlas.state import AtlasStates, LoadedAtlas
+from service.atlas.verify import CandidateVerification, verification_config
+from service.concurrency import InferenceGate, default_workers
+from service.config import Settings
+from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
+from service.ml.pipeline import FeaturePipeline
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.models import Atlas, Frame, ModelVersion, Submap
+
+
+class AtlasService:
+    """Atlases, submaps, frames and queries over one database and one data directory."""
+
+    def __init__(
+        self, settings: Settings, sessions: sessionmaker[Session], pipeline: FeaturePipeline
+    ) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.pipeline = pipeline
+        # Decode + CNNs behind a bounded gate: beyond its slots and queue, Overloaded (503).
+        self.inference = InferenceGate(
+            settings.inference_workers or default_workers(settings.torch_threads),
+            settings.inference_queue,
+            settings.inference_wait_seconds,
+        )
+        self.verification_config = verification_config(settings, pipeline.preset.local.name)
+        self.states = AtlasStates(settings, sessions)
+        self.frames = FrameIngest(settings, sessions, pipeline, self.states, self.inference)
+        self.verification = CandidateVerification(self.verification_config, self.inference)
+        self.queries = AtlasQueries(settings, sessions, self.states, self.frames, self.verification)
+        # what the follower thread, the tests and the CLI reach through the facade
+        self._loaded = self.states.loaded_states
+        self.broken = self.states.broken
+        self.loaded = self.states.loaded
+        self.refresh = self.states.refresh
+        self.follow = self.states.follow
+        self.flush = self.states.flush
+        self.load_all = self.states.load_all
+        self.save_index = self.states.save_index
+        self.extract = self.frames.extract
+        self.ingest_frame = self.frames.ingest_frame
+        self.ingest_features = self.frames.ingest_features
+        self.delete_frame = self.frames.delete_frame
+        self.delete_submap = self.frames.delete_submap
+
+    # ----- atlases -----------------------------------------------------------------------
+
+    def create_atlas(self, name: str, description: str = "") -> Atlas:
+        validate_name("atlas", name)
+        heads_config = self.pipeline.heads_config()
+        with transaction(self.sessions) as session:
+            atlas = repo.create_atlas(
+                session,
+                name=name,
+                description=description,
+                feature_signature=self.pipeline.signature,
+            )
+            repo.create_model_version(
+                session,
+                atlas_id=atlas.id,
+                config=models_store.initial_version_config(heads_config),
+                metrics={},
+                weights_path=None,
+                activate=True,
+            )
+        return atlas
+
+    def create_submap(self, atlas_name: str, name: str) -> Submap:
+        validate_name("submap", name)
+        with transaction(self.sessions) as session:
+            return repo.create_submap(
+                session, atlas=repo.get_atlas(session, name=atlas_name), name=name
+            )
+
+    def delete_atlas(self, name: str) -> None:
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=name)
+            atlas_id = atlas.id
+            session.delete(atlas)
+        self.states.forget(atlas_id)
+        models_store.remove_atlas_files(self.settings.index_dir, self.settings.models_dir, atlas_id)
+
+    def unavailable_atlases(self) -> dict[str, str]:
+        """Atlas name -> why it cannot be loaded (served with 503 while the others serve)."""
+        return unavailable_atlases(self.sessions, self.states.broken.reasons())
+
+    def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
+        """Make a model version the active one; this process serves it at once, the others
+        within their poll period."""
+        with transaction(self.sessions) as session:
+            found = repo.get_atlas(session, name=atlas_name)
+            activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
+        self.states.refresh(found.id)
+        return activated
+
+    def rebuild_index(self, atlas_name: str) -> int:
+        """Re-embed every frame of an atlas from stored features into a fresh index file."""
+        with self.sessions() as session:
+            atlas_id = repo.get_atlas(session, name=atlas_name).id
+        return self.states.rebuild_index(atlas_id)
+
+    # ----- queries -----------------------------------------------------------------------
+
+    def query_filter(self, **fields: Any) -> QueryFilter:
+        """A validated filter (see :func:`service.atlas.filters.make_filter`)."""
+        return make_filter(self.settings, **fields)
+
+    def query(
+        self,
+        *,
+        atlas_name: str,
+        image_bytes: bytes,
+        k: int = 5,
+        robot_id: str | None = None,
+        query_filter: QueryFilter | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> QueryResult:
+        """The frames of the atlas most similar to an image, verified, and the loop-closure
+        decision. ``robot_id`` is the robot asking (its recent frames never match)."""
+        return self.queries.query(
+            atlas_name=atlas_name,
+            image_bytes=image_bytes,
+            k=k,
+            query_filter=query_filter or self.query_filter(robot_id=robot_id),
+            intrinsics=intrinsics,
+        )
+
+    def query_features(
+        self,
+        *,
+        atlas_name: str,
+        features: FrameFeatures,
+        k: int = 5,
+        robot_id: str | None = None,
+        query_filter: QueryFilter | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> QueryResult:
+        """Search with already extracted features (by :meth:`extract`) and verify."""
+        return self.queries.query_features(
+            atlas_name=atlas_name,
+            features=features,
+            k=k,
+            query_filter=query_filter or self.query_filter(robot_id=robot_id),
+            intrinsics=intrinsics,
+        )
+
+    def observe(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+        k: int = 5,
+        query_filter: QueryFilter | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """:meth:`AtlasQueries.observe` with the observing robot's default filter."""
+        return self.queries.observe(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            image_bytes=image_bytes,
+            query_filter=query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp),
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+            k=k,
+        )
+
+
+__all__ = ["AtlasService", "LoadedAtlas"]

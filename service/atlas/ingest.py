@@ -1,0 +1,191 @@
+"""Adding frames to an atlas and deleting them.
+
+Writes follow one order so that a rejected request leaves nothing behind: validate (names,
+atlas, feature signature, submap) before any CNN runs, decode and run the CNNs, then commit the
+rows in one transaction, and only then add the embedding to the in-memory index.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.atlas import change_feed
+from service.atlas.names import validate_name
+from service.atlas.state import AtlasStates
+from service.concurrency import InferenceGate
+from service.config import Settings
+from service.errors import Conflict, InvalidInput
+from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
+from service.ml.heads import LoopNetHeads
+from service.ml.images import decode_image
+from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.models import Atlas, Frame
+
+
+def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
+    validate_name("robot", robot_id)
+    if timestamp is not None and not np.isfinite(timestamp):
+        raise InvalidInput("timestamp must be a finite number of seconds")
+
+
+def embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
+    return embed_vectors(heads, features.local_vector[None], features.global_vector[None])[0]
+
+
+class FrameIngest:
+    """Extraction behind the inference gate, and the frame writes of every atlas."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        sessions: sessionmaker[Session],
+        pipeline: FeaturePipeline,
+        states: AtlasStates,
+        inference: InferenceGate,
+    ) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.pipeline = pipeline
+        self.states = states
+        self.inference = inference
+
+    def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
+        """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
+        atlas = repo.get_atlas(session, name=atlas_name)
+        if atlas.feature_signature != self.pipeline.signature:
+            raise Conflict(
+                f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
+                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+            )
+        return atlas
+
+    def extract(self, image_bytes: bytes) -> tuple[FrameFeatures, float]:
+        """Decode and run the CNNs in one of the gate's slots; returns the features and the
+        decode time in ms. Raises Overloaded when every slot is busy and the queue is full."""
+        with self.inference.slot():
+            start = time.perf_counter()
+            rgb = decode_image(image_bytes, self.settings.image_limits)
+            decode_ms = (time.perf_counter() - start) * 1000.0
+            features = self.pipeline.extract(rgb)
+        return features, decode_ms
+
+    def ingest_frame(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> Frame:
+        """Store a frame, its features and its embedding; nothing is written if any step fails."""
+        validate_frame_fields(robot_id, timestamp)
+        with self.sessions() as session:
+            atlas = self.checked_atlas(session, atlas_name)
+            repo.get_submap(session, atlas=atlas, name=submap_name)
+        features, _ = self.extract(image_bytes)
+        return self.store(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+
+    def ingest_features(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> Frame:
+        """Store a frame whose features are already extracted (validated here)."""
+        validate_frame_fields(robot_id, timestamp)
+        return self.store(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+
+    def store(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> Frame:
+        """Commit a validated frame's rows in one transaction; the embedding is then computed
+        with the atlas's *current* heads and added to its index, so a model swap in between
+        cannot leave the frame embedded by the wrong version."""
+        with transaction(self.sessions) as session:
+            atlas = self.checked_atlas(session, atlas_name)
+            submap = repo.get_submap(session, atlas=atlas, name=submap_name)
+            frame = repo.add_frame(
+                session,
+                atlas=atlas,
+                submap=submap,
+                robot_id=robot_id,
+                timestamp=timestamp,
+                pose=pose,
+                intrinsics=intrinsics,
+                features=features,
+            )
+            revision = change_feed.record(
+                session, atlas_id=atlas.id, op=change_feed.ADD, frame_ids=[frame.id]
+            )
+        with self.states.lock(frame.atlas_id):
+            state = self.states.loaded(frame.atlas_id)
+            if state.revision < revision:  # else the change feed has handled it already
+                embedding = embed(state.heads, features)
+                state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+                state.dirty = True
+        return frame
+
+    def delete_frame(self, atlas_name: str, frame_id: int) -> None:
+        """Delete one frame (rows, features); every process drops it from its index."""
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            session.delete(repo.get_frame(session, atlas=atlas, frame_id=frame_id))
+            atlas_id = atlas.id
+            revision = change_feed.record(
+                session, atlas_id=atlas_id, op=change_feed.REMOVE, frame_ids=[frame_id]
+            )
+        self.states.drop_from_index(atlas_id, [frame_id], revision)
+
+    def delete_submap(self, atlas_name: str, submap_name: str) -> int:
+        """Delete a submap with its frames; returns how many frames went."""
+        with transaction(self.sessions) as session:
+            atlas = repo.get_atlas(session, name=atlas_name)
+            submap = repo.get_submap(session, atlas=atlas, name=submap_name)
+            frame_ids = repo.frame_ids_of_submap(session, submap_id=submap.id)
+            session.delete(submap)  # the database cascades to its frames and their features
+            atlas_id, revision = atlas.id, None
+            if frame_ids:
+                revision = change_feed.record(
+                    session, atlas_id=atlas_id, op=change_feed.REMOVE, frame_ids=frame_ids
+                )
+        if revision is not None:
+            self.states.drop_from_index(atlas_id, frame_ids, revision)
+        return len(frame_ids)

@@ -1,0 +1,75 @@
+"""Where a model version's files live, and loading its heads."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.storage.models import ModelVersion
+
+
+@dataclass(frozen=True)
+class VersionConfig:
+    """The ``config`` JSON of a model version row, read and written only through here.
+
+    ``heads`` rebuilds the untrained heads; ``training`` and ``job_id`` say how a trained
+    version was made.
+    """
+
+    heads: HeadsConfig
+    trained: bool = False
+    training: dict[str, Any] | None = None
+    job_id: int | None = None
+
+    @classmethod
+    def of(cls, version: ModelVersion) -> VersionConfig:
+        raw = version.config
+        return cls(
+            heads=HeadsConfig(**raw["heads"]),
+            trained=bool(raw.get("trained")),
+            training=raw.get("training"),
+            job_id=raw.get("job_id"),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"heads": asdict(self.heads), "trained": self.trained}
+        if self.training is not None:
+            out["training"] = self.training
+        if self.job_id is not None:
+            out["job_id"] = self.job_id
+        return out
+
+
+def initial_version_config(heads_config: HeadsConfig) -> dict[str, Any]:
+    """The config row of an atlas's untrained first version (its heads rebuild from it)."""
+    return VersionConfig(heads_config).to_json()
+
+
+def index_file(index_dir: Path, atlas_id: int, version: int) -> Path:
+    """The FAISS file of an atlas embedded by one model version."""
+    return index_dir / f"atlas-{atlas_id}-v{version}.faiss"
+
+
+def weights_file(models_dir: Path, atlas_id: int, version: int) -> Path:
+    """The heads' weights of a trained version (relative paths in the row are under models_dir)."""
+    return models_dir / f"atlas-{atlas_id}" / f"v{version}.pt"
+
+
+def load_heads(version: ModelVersion, models_dir: Path) -> LoopNetHeads:
+    """The heads of ``version``: from its weights file, or rebuilt untrained from its config."""
+    if version.weights_path is None:
+        return LoopNetHeads(VersionConfig.of(version).heads).eval()
+    path = Path(version.weights_path)
+    if not path.is_absolute():
+        path = models_dir / path
+    return LoopNetHeads.load(path)
+
+
+def remove_atlas_files(index_dir: Path, models_dir: Path, atlas_id: int) -> None:
+    """Delete every index file and weights file of an atlas (its rows are deleted apart)."""
+    for path in index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
+        path.unlink(missing_ok=True)
+    shutil.rmtree(models_dir / f"atlas-{atlas_id}", ignore_errors=True)

@@ -1,0 +1,276 @@
+"""Queries and observations: one path per request.
+
+Everything a request names (k, the atlas and its feature signature, the filter and its submap)
+is checked once, in one session, before any CNN runs; after extraction one session resolves the
+filter, searches and reads the candidates and their stored keypoints for verification.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.atlas.filters import QueryFilter, resolve
+from service.atlas.ingest import FrameIngest, embed, validate_frame_fields
+from service.atlas.results import (
+    Candidate,
+    QueryResult,
+    SubmapGuess,
+    VerificationSummary,
+    place_margin,
+)
+from service.atlas.state import AtlasStates, LoadedAtlas
+from service.atlas.verify import CandidateVerification
+from service.config import Settings
+from service.errors import InvalidInput
+from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.geometry import Intrinsics, Pose
+from service.ml.verification import Verification, View, decide, rerank
+from service.storage import repository as repo
+from service.storage.feature_store import load_local_features
+from service.storage.models import Atlas, Frame
+
+# Frames searched per query beyond k, so the margin finds the best other place even when the
+# top k all lie in the match's submap.
+MARGIN_POOL = 32
+
+
+@dataclass(frozen=True)
+class Found:
+    """What the search session read: candidates in similarity order and their frames."""
+
+    candidates: list[Candidate]
+    frames: dict[int, Frame]
+    names: dict[int, str]
+    stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
+
+
+class AtlasQueries:
+    """Query an atlas with an image or extracted features; observe (query, then insert)."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        sessions: sessionmaker[Session],
+        states: AtlasStates,
+        ingest: FrameIngest,
+        verification: CandidateVerification,
+    ) -> None:
+        self.settings = settings
+        self.sessions = sessions
+        self.states = states
+        self.ingest = ingest
+        self.verification = verification
+
+    def check_k(self, k: int) -> None:
+        if not 1 <= k <= self.settings.max_k:
+            raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
+
+    def _check_targets(
+        self, session: Session, atlas_name: str, query_filter: QueryFilter, submap: str | None
+    ) -> Atlas:
+        """The atlas (signature checked), the filter's submap and the target submap exist."""
+        atlas = self.ingest.checked_atlas(session, atlas_name)
+        for name in {query_filter.submap, submap} - {None}:
+            repo.get_submap(session, atlas=atlas, name=name)  # type: ignore[arg-type]
+        return atlas
+
+    def query(
+        self,
+        *,
+        atlas_name: str,
+        image_bytes: bytes,
+        k: int,
+        query_filter: QueryFilter,
+        intrinsics: Intrinsics | None = None,
+    ) -> QueryResult:
+        """The frames of the atlas most similar to an image, verified, and the loop-closure
+        decision. The filter's robot is the robot asking (its recent frames never match)."""
+        total_start = time.perf_counter()
+        self.check_k(k)
+        with self.sessions() as session:
+            self._check_targets(session, atlas_name, query_filter, None)
+        features, decode_ms = self.ingest.extract(image_bytes)
+        result = self._search(atlas_name, features, k, query_filter, intrinsics)
+        return with_extraction_timings(result, features, decode_ms, total_start)
+
+    def observe(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        query_filter: QueryFilter,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+        k: int = 5,
+    ) -> tuple[QueryResult, Frame]:
+        """Online SLAM: query with a robot's new keyframe, then insert it, in one call.
+
+        Everything is validated before the CNNs run; the query happens before the insert, so
+        the new frame is never its own match; the insert is one transaction, so a failure
+        writes nothing.
+        """
+        total_start = time.perf_counter()
+        validate_frame_fields(robot_id, timestamp)
+        self.check_k(k)
+        if query_filter.robot_id != robot_id:
+            raise InvalidInput("an observation's filter must be for the observing robot")
+        with self.sessions() as session:
+            self._check_targets(session, atlas_name, query_filter, submap_name)
+        features, decode_ms = self.ingest.extract(image_bytes)
+        result = self._search(atlas_name, features, k, query_filter, intrinsics)
+        frame = self.ingest.store(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+        return with_extraction_timings(result, features, decode_ms, total_start), frame
+
+    def query_features(
+        self,
+        *,
+        atlas_name: str,
+        features: FrameFeatures,
+        k: int,
+        query_filter: QueryFilter,
+        intrinsics: Intrinsics | None = None,
+    ) -> QueryResult:
+        """Search with already extracted features and verify the best candidates; timings
+        cover the heads, the search and the verification."""
+        self.check_k(k)
+        return self._search(atlas_name, features, k, query_filter, intrinsics)
+
+    def _search(
+        self,
+        atlas_name: str,
+        features: FrameFeatures,
+        k: int,
+        query_filter: QueryFilter,
+        intrinsics: Intrinsics | None,
+    ) -> QueryResult:
+        with self.sessions() as session:
+            atlas = self.ingest.checked_atlas(session, atlas_name)
+            state = self.states.loaded(atlas.id, session)
+            timings: dict[str, float] = {}
+            start = time.perf_counter()
+            embedding = embed(state.heads, features)
+            prediction = state.heads.predict_submap(
+                torch.from_numpy(features.local_vector[None]),
+                torch.from_numpy(features.global_vector[None]),
+            )
+            timings["heads"] = (time.perf_counter() - start) * 1000.0
+            found = self._find(session, atlas, state, embedding, k, query_filter, timings)
+        config = self.verification.config
+        candidates = found.candidates
+        verifications: dict[int, Verification] = {}
+        if self.verification.enabled and candidates:
+            start = time.perf_counter()
+            checked = candidates[: config.top]
+            verifications = self.verification.verify(
+                View(features.local, features.image_size, intrinsics),
+                [found.frames[c.frame_id] for c in checked],
+                found.stored,
+            )
+            for candidate in checked:
+                verified = verifications.get(candidate.frame_id)
+                if verified is not None:
+                    candidate.inliers = verified.inliers
+                    candidate.inlier_ratio = round(verified.inlier_ratio, 4)
+                    candidate.verified = verified.verified
+                    candidate.relative_pose = verified.relative_pose
+            order = rerank([c.similarity for c in candidates], [c.inliers for c in candidates])
+            candidates = [candidates[i] for i in order]
+            timings["verification"] = (time.perf_counter() - start) * 1000.0
+        if prediction is None:
+            guess = SubmapGuess(
+                available=False,
+                reason=(
+                    f"model version {state.model_version} of atlas '{atlas_name}' has no trained "
+                    "classification head; run a retrain job to get submap predictions"
+                ),
+            )
+        else:
+            guess = SubmapGuess(True, found.names.get(prediction.submap_id), prediction.probability)
+        threshold = self.settings.loop_closure_threshold
+        match = candidates[0] if candidates else None
+        enabled = self.verification.enabled
+        return QueryResult(
+            atlas=atlas_name,
+            model_version=state.model_version,
+            match=match,
+            candidates=candidates[:k],
+            loop_closure=decide(
+                match.similarity if match else None,
+                verifications.get(match.frame_id) if match else None,
+                threshold=threshold,
+                verify=enabled,
+            ),
+            threshold=threshold,
+            predicted_submap=guess,
+            keypoints=features.local.count,
+            timings_ms={name: round(ms, 3) for name, ms in timings.items()},
+            margin=place_margin(candidates),
+            verification=VerificationSummary(
+                enabled=enabled,
+                matcher=config.matcher if enabled else None,
+                verified_candidates=len(verifications),
+                min_inliers=config.min_inliers if enabled else None,
+            ),
+        )
+
+    def _find(
+        self,
+        session: Session,
+        atlas: Atlas,
+        state: LoadedAtlas,
+        embedding: np.ndarray,
+        k: int,
+        query_filter: QueryFilter,
+        timings: dict[str, float],
+    ) -> Found:
+        """Resolve the filter, search the index, read the hits' frames and the stored
+        keypoints of those to verify, all in the request's one search session."""
+        selection = resolve(session, atlas, query_filter)
+        top = self.verification.config.top
+        start = time.perf_counter()
+        hits = state.index.search(
+            embedding,
+            max(k, top, MARGIN_POOL),
+            include=selection.include,
+            exclude=selection.exclude,
+        )
+        timings["search"] = (time.perf_counter() - start) * 1000.0
+        names = repo.submap_names(session, atlas_id=atlas.id)
+        frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])
+        candidates = [
+            Candidate(h.frame_id, names[f.submap_id], f.robot_id, h.similarity)
+            for h in hits
+            if (f := frames.get(h.frame_id)) is not None
+        ]
+        stored: dict[int, LocalFeatures] = {}
+        if self.verification.enabled and candidates:
+            stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
+        return Found(candidates, frames, names, stored)
+
+
+def with_extraction_timings(
+    result: QueryResult, features: FrameFeatures, decode_ms: float, total_start: float
+) -> QueryResult:
+    result.timings_ms = {
+        "decode": round(decode_ms, 3),
+        **{name: round(ms, 3) for name, ms in features.timings_ms.items()},
+        **result.timings_ms,
+        "total": round((time.perf_counter() - total_start) * 1000.0, 3),
+    }
+    return result

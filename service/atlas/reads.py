@@ -1,0 +1,96 @@
+"""What the API and the CLI read about atlases: summaries, submaps, model versions, frames and
+the loop closures recorded between robots, each in one session."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.atlas.loop_closures import list_loop_closures
+from service.atlas.model_versions import VersionConfig
+from service.storage import repository as repo
+from service.storage.models import Atlas, Frame, LoopClosure, ModelVersion, Submap
+
+Sessions = sessionmaker[Session]
+
+
+def summary_of(session: Session, atlas: Atlas) -> dict[str, Any]:
+    version = repo.active_model_version(session, atlas_id=atlas.id)
+    return {
+        "name": atlas.name,
+        "description": atlas.description,
+        "created_at": atlas.created_at,
+        "submaps": repo.count_submaps(session, atlas_id=atlas.id),
+        "frames": repo.count_frames(session, atlas_id=atlas.id),
+        "active_model_version": version.version,
+        "classifier_trained": VersionConfig.of(version).trained,
+        "feature_signature": atlas.feature_signature,
+    }
+
+
+def atlas_summary(sessions: Sessions, name: str) -> dict[str, Any]:
+    with sessions() as session:
+        return summary_of(session, repo.get_atlas(session, name=name))
+
+
+def atlas_summaries(sessions: Sessions, visible: Callable[[str], bool]) -> list[dict[str, Any]]:
+    """The summaries of the atlases ``visible`` lets the caller see."""
+    with sessions() as session:
+        return [summary_of(session, a) for a in repo.list_atlases(session) if visible(a.name)]
+
+
+def unavailable_atlases(sessions: Sessions, reasons: dict[int, str]) -> dict[str, str]:
+    """Atlas name -> why it cannot be loaded, from ``reasons`` by atlas id (atlases deleted
+    since are left out)."""
+    if not reasons:
+        return {}
+    with sessions() as session:
+        names = {a.id: a.name for a in repo.list_atlases(session)}
+    return {names[i]: reason for i, reason in reasons.items() if i in names}
+
+
+def feature_signature(sessions: Sessions, atlas: str) -> dict[str, Any]:
+    with sessions() as session:
+        return repo.get_atlas(session, name=atlas).feature_signature
+
+
+def submaps_with_counts(sessions: Sessions, atlas: str) -> list[tuple[Submap, int]]:
+    with sessions() as session:
+        return repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
+
+
+def model_versions(sessions: Sessions, atlas: str) -> list[ModelVersion]:
+    with sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        return repo.list_model_versions(session, atlas_id=found.id)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    atlas: str
+    submap: str
+    frame: Frame
+
+
+def frame_record(sessions: Sessions, atlas: str, frame_id: int) -> FrameRecord:
+    with sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
+        return FrameRecord(found.name, frame.submap.name, frame)
+
+
+def loop_closures(
+    sessions: Sessions,
+    atlas: str,
+    *,
+    robot: str | None = None,
+    since: datetime | None = None,
+    limit: int = 100,
+) -> list[tuple[LoopClosure, str]]:
+    with sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        return list_loop_closures(session, atlas_id=found.id, robot=robot, since=since, limit=limit)

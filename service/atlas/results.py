@@ -1,0 +1,65 @@
+"""What a query answers: candidates, the verification summary, the submap guess."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from service.ml.verification import RelativePose
+
+
+@dataclass
+class Candidate:
+    frame_id: int
+    submap: str
+    robot_id: str
+    similarity: float
+    inliers: int | None = None
+    inlier_ratio: float | None = None
+    verified: bool = False
+    relative_pose: RelativePose | None = None
+
+
+@dataclass
+class VerificationSummary:
+    """How the candidates of an answer were verified."""
+
+    enabled: bool
+    matcher: str | None = None
+    verified_candidates: int = 0
+    min_inliers: int | None = None
+
+
+@dataclass
+class SubmapGuess:
+    available: bool
+    submap: str | None = None
+    probability: float | None = None
+    reason: str | None = None
+
+
+@dataclass
+class QueryResult:
+    atlas: str
+    model_version: int
+    match: Candidate | None
+    candidates: list[Candidate]
+    loop_closure: bool
+    threshold: float
+    predicted_submap: SubmapGuess
+    keypoints: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    margin: float | None = None
+    verification: VerificationSummary = field(
+        default_factory=lambda: VerificationSummary(enabled=False)
+    )
+
+
+def place_margin(candidates: list[Candidate]) -> float | None:
+    """Similarity of the match minus that of the best candidate from another place, a place
+    being a submap: small or negative means a look-alike elsewhere competes with the match.
+    None when every searched frame lies in the match's submap."""
+    if not candidates:
+        return None
+    best = candidates[0]
+    others = [c.similarity for c in candidates[1:] if c.submap != best.submap]
+    return round(best.similarity - max(others), 6) if others else None

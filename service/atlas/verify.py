@@ -1,0 +1,71 @@
+"""Geometric verification of a query's best candidates against their stored keypoints."""
+
+from __future__ import annotations
+
+from service.concurrency import InferenceGate
+from service.config import Settings
+from service.ml.features import LocalFeatures
+from service.ml.geometry import Intrinsics
+from service.ml.matching import resolve_matcher_name
+from service.ml.two_view import RansacConfig
+from service.ml.verification import (
+    Verification,
+    VerificationConfig,
+    Verifier,
+    View,
+    default_min_inliers,
+)
+from service.storage.models import Frame
+
+
+def verification_config(settings: Settings, local_extractor: str) -> VerificationConfig:
+    """The verification the settings ask for, with the extractor's default matcher."""
+    matcher = resolve_matcher_name(settings.matcher, local_extractor)
+    return VerificationConfig(
+        matcher=matcher,
+        top=settings.verify_top,
+        min_inliers=settings.verify_min_inliers or default_min_inliers(matcher),
+        ratio=settings.verify_ratio,
+        ransac=RansacConfig(threshold_px=settings.ransac_threshold_px),
+    )
+
+
+class CandidateVerification:
+    """Verifies candidates in one of the inference gate's slots (matching and RANSAC are
+    inference work too: torch threads)."""
+
+    def __init__(self, config: VerificationConfig, inference: InferenceGate) -> None:
+        self.config = config
+        self.inference = inference
+        self._verifier: Verifier | None = None  # built on first use (LightGlue loads weights)
+
+    @property
+    def enabled(self) -> bool:
+        return self.config.top > 0
+
+    @property
+    def verifier(self) -> Verifier:
+        if self._verifier is None:
+            self._verifier = Verifier(self.config)
+        return self._verifier
+
+    def verify(
+        self, query: View, frames: list[Frame], stored: dict[int, LocalFeatures]
+    ) -> dict[int, Verification]:
+        """Verify the query against stored frames (``stored``: their keypoints by frame id;
+        a frame missing there was deleted meanwhile and is skipped)."""
+        verifier = self.verifier
+        found = {}
+        with self.inference.slot():
+            for frame in frames:
+                local = stored.get(frame.id)
+                if local is None:
+                    continue
+                intrinsics = (
+                    Intrinsics(frame.fx, frame.fy, frame.cx, frame.cy)  # type: ignore[arg-type]
+                    if frame.fx is not None
+                    else None
+                )
+                view = View(local, (frame.width, frame.height), intrinsics)
+                found[frame.id] = verifier.verify(query, view)
+        return found

@@ -1,0 +1,1 @@
+"""Running a fleet of robots and replicas: API keys and atlas snapshots."""

@@ -1,0 +1,391 @@
+"""The FAISS index of one atlas: ids are frame ids, inner product on unit embeddings (cosine).
+
+The database is the source of truth; the index file under the data directory is a cache that
+``reconcile`` brings back in step with the database after a restart or a crash.
+
+The index type follows the atlas's size (:class:`IndexPolicy`, figures in
+``benchmarks/RESULTS.md``, *Search at scale*): exact search (``IndexFlatIP``) while its vectors
+fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes
+(``IndexIVFScalarQuantizer``) whose precision is the finest that fits the per-frame memory
+budget. The inverted file is trained on the atlas's own vectors when the atlas crosses that
+size and retrained when it has grown about fourfold since (its list count no longer fits its
+size), in a background thread while the current index keeps serving. Both types keep what the
+service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
+through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
+lists hold too few of them).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+MIN_PER_LIST = 39  # k-means needs about this many training vectors per list (faiss warns below)
+
+
+def ivf_nlist(n: int) -> int:
+    """Inverted lists for ``n`` vectors: the power of two nearest ``4 sqrt(n)``, with at least
+    ``MIN_PER_LIST`` vectors per list (and at least 16 lists)."""
+    nearest = 2 ** round(np.log2(4 * np.sqrt(max(n, 1))))
+    most = 2 ** int(np.log2(max(n // MIN_PER_LIST, 1)))
+    return int(max(16, min(nearest, most)))
+
+
+@dataclass(frozen=True)
+class IndexPolicy:
+    """When the index switches from exact to approximate search, and how it is tuned.
+
+    Attributes:
+        flat_max_bytes: exact search while the flat index holds at most this many bytes of
+            vectors (32k frames at 256-d, 6k at 1408-d; its query time is in
+            benchmarks/RESULTS.md). A scan's cost is its bytes, so the threshold is in bytes.
+        bytes_per_frame: memory budget of one frame's code in the inverted file (+ its 8-byte
+            id); the finest scalar quantiser that fits is chosen (fp16, 8, 6 or 4 bits). 1500
+            gives float16 codes at 256-d (520 B; 8-bit codes lose near ties there) and 8-bit
+            codes at 1408-d (1416 B; 6-bit codes fit but lose recall, see benchmarks/RESULTS.md).
+        nprobe: inverted lists visited per query.
+        train_per_list: training vectors per list (k-means sample, taken in id order).
+        kmeans_iterations: k-means iterations when (re)training.
+        background: train and fill a new index in a thread while the old one serves (the
+            service); off, the add that crosses a threshold waits for it.
+    """
+
+    flat_max_bytes: int = 32 << 20
+    bytes_per_frame: int = 1500
+    nprobe: int = 32
+    train_per_list: int = 64
+    kmeans_iterations: int = 10
+    background: bool = True
+
+    def flat_max(self, dim: int) -> int:
+        """The most frames searched exactly at ``dim``."""
+        return self.flat_max_bytes // (4 * dim)
+
+    def quantizer(self, dim: int) -> str:
+        """The FAISS scalar-quantiser name whose codes fit the budget at ``dim``."""
+        for name, bits in (("SQfp16", 16), ("SQ8", 8), ("SQ6", 6)):
+            if dim * bits / 8 + 8 <= self.bytes_per_frame:
+                return name
+        return "SQ4"
+
+
+@dataclass(frozen=True)
+class Hit:
+    frame_id: int
+    similarity: float
+
+
+class AtlasIndex:
+    """Inner-product search over an atlas's frame embeddings, with robot filters."""
+
+    def __init__(
+        self, dim: int, index: faiss.Index | None = None, policy: IndexPolicy | None = None
+    ) -> None:
+        self.dim = dim
+        self.policy = policy or IndexPolicy()
+        # faiss's SWIG classes are only partly typed: treat the index as Any.
+        self._index: Any = index if index is not None else _flat(dim)
+        if self._index.d != dim:
+            raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
+        self._robot_of: dict[int, str] = {}
+        self._lock = threading.RLock()
+        # While a rebuild runs: the adds and removals to replay on the new index.
+        self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
+        self._rebuilder: threading.Thread | None = None
+
+    @property
+    def size(self) -> int:
+        return int(self._index.ntotal)
+
+    @property
+    def exact(self) -> bool:
+        """Whether searches are exact (a flat index) rather than approximate."""
+        return self._ivf() is None
+
+    def describe(self) -> str:
+        """The index type in words, for logs and benchmarks."""
+        ivf = self._ivf()
+        if ivf is None:
+            return "Flat (exact)"
+        return f"IVF{ivf.nlist},{_quantizer_name(ivf)} nprobe={min(self.policy.nprobe, ivf.nlist)}"
+
+    def _ivf(self) -> Any | None:
+        """The inverted-file index, or None while the index is flat."""
+        return self._index if isinstance(self._index, faiss.IndexIVF) else None
+
+    def ids(self) -> np.ndarray:
+        """The frame ids held, as int64 (unsorted)."""
+        with self._lock:
+            ivf = self._ivf()
+            if ivf is None:
+                return faiss.vector_to_array(self._index.id_map).astype(np.int64)
+            lists = ivf.invlists
+            parts = [
+                faiss.rev_swig_ptr(lists.get_ids(i), lists.list_size(i)).copy()
+                for i in range(ivf.nlist)
+                if lists.list_size(i)
+            ]
+            return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+    def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> int:
+        """Add ``N`` unit ``vectors`` under frame ``ids`` taken by ``robots``.
+
+        Idempotent: ids already held are skipped, so a frame caught up by reconciliation and
+        added by its own ingest call is indexed once. Returns how many were added. An add that
+        takes the atlas past a size threshold of the policy starts a rebuild of the index.
+        """
+        vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+        if vectors.shape != (len(ids), self.dim):
+            raise ValueError(f"expected {len(ids)} x {self.dim} vectors, got {vectors.shape}")
+        with self._lock:
+            new = np.array([int(i) not in self._robot_of for i in ids], dtype=bool)
+            if not new.any():
+                return 0
+            new_ids = np.asarray(ids, dtype=np.int64)[new]
+            self._regrow(new_ids, vectors[new])
+            kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
+            self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
+            return int(new.sum())
+
+    def set_robots(self, robot_of: dict[int, str]) -> None:
+        """Attach robot ids to frames loaded from a file (the file holds vectors only)."""
+        with self._lock:
+            self._robot_of.update(robot_of)
+
+    def remove(self, ids: np.ndarray) -> int:
+        if len(ids) == 0:
+            return 0
+        with self._lock:
+            ids = np.asarray(ids, dtype=np.int64)
+            removed = int(self._index.remove_ids(ids))
+            for i in ids:
+                self._robot_of.pop(int(i), None)
+            if self._log is not None:
+                self._log.append(("remove", ids, None))
+            elif self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:
+                self._start_rebuild(self.size)  # shrunk well below the threshold: exact again
+            return removed
+
+    def search(
+        self,
+        vector: np.ndarray,
+        k: int,
+        robot_id: str | None = None,
+        *,
+        include: np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+    ) -> list[Hit]:
+        """The ``k`` most similar frames to one unit ``vector``.
+
+        Optionally only one robot's frames, only the frame ids in ``include``, and never those
+        in ``exclude``.
+        """
+        query = np.ascontiguousarray(vector, dtype=np.float32).reshape(1, self.dim)
+        with self._lock:
+            if self.size == 0:
+                return []
+            if robot_id is not None:
+                own = np.array(
+                    [i for i, r in self._robot_of.items() if r == robot_id], dtype=np.int64
+                )
+                include = own if include is None else np.intersect1d(include, own)
+            if include is not None:
+                if exclude is not None and len(exclude):
+                    include = np.setdiff1d(include, exclude)
+                if len(include) == 0:
+                    return []
+            k = min(k, self.size)
+            if include is not None:
+                wanted = min(k, len(include))
+            elif exclude is not None:
+                wanted = max(min(k, self.size - len(exclude)), 0)
+            else:
+                wanted = k
+            similarities, ids = self._search(query, k, _selector(include, exclude), wanted)
+        return [
+            Hit(int(i), float(s)) for i, s in zip(ids[0], similarities[0], strict=True) if i >= 0
+        ]
+
+    def _search(
+        self, query: np.ndarray, k: int, selector: Any, wanted: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Search, restricted by ``selector`` (None: every frame).
+
+        On the inverted file a filtered search first visits ``nprobe`` lists; if they hold fewer
+        than ``wanted`` allowed frames (a rare robot's frames spread over the atlas) it searches
+        every list, which scores exactly the allowed frames' codes.
+        """
+        ivf = self._ivf()
+        if ivf is None:
+            params = None if selector is None else faiss.SearchParameters(sel=selector)  # type: ignore[call-arg]
+            return self._index.search(query, k, params=params)  # type: ignore[no-any-return]
+        nprobe = min(self.policy.nprobe, ivf.nlist)
+        params = faiss.SearchParametersIVF(nprobe=nprobe, sel=selector)  # type: ignore[call-arg]
+        similarities, ids = self._index.search(query, k, params=params)
+        if int((ids[0] >= 0).sum()) < wanted and nprobe < ivf.nlist:
+            params = faiss.SearchParametersIVF(nprobe=ivf.nlist, sel=selector)  # type: ignore[call-arg]
+            similarities, ids = self._index.search(query, k, params=params)
+        return similarities, ids
+
+    # ----- choosing the type by size -------------------------------------------------------
+
+    def _regrow(self, ids: np.ndarray, vectors: np.ndarray) -> None:
+        """Add ``vectors``; when the atlas's size calls for another index (exact to inverted
+        file, or more lists), start rebuilding it from the held vectors."""
+        self._index.add_with_ids(vectors, ids)
+        if self._log is not None:
+            self._log.append(("add", ids, vectors))
+        else:
+            self._regrow_if_due()
+
+    def _wanted_nlist(self, size: int) -> int | None:
+        return None if size <= self.policy.flat_max(self.dim) else ivf_nlist(size)
+
+    def _start_rebuild(self, size: int) -> None:
+        """Snapshot the held vectors (under the lock), then train and fill the new index.
+
+        With ``policy.background`` the slow part (k-means, assigning every vector) runs in a
+        thread while the current index keeps serving; adds and removals made meanwhile are
+        logged and replayed on the new index before it replaces the old one. A foreground
+        rebuild's result depends only on the sequence of adds and removals; a background one
+        trains on the snapshot taken when it started, so a later threshold crossed meanwhile is
+        handled by the next rebuild, and the codes can differ in the last digits.
+        """
+        ids = np.sort(self.ids())
+        vectors = self._reconstruct(ids)
+        target = self._flat_like() if self._wanted_nlist(size) is None else self._ivf_like(size)
+        self._log = []
+        if not self.policy.background:
+            self._finish_rebuild(target, ids, vectors)
+            return
+        self._rebuilder = threading.Thread(
+            target=self._finish_rebuild, args=(target, ids, vectors), daemon=True
+        )
+        self._rebuilder.start()
+
+    def _finish_rebuild(self, target: Any, ids: np.ndarray, vectors: np.ndarray) -> None:
+        try:
+            if not target.is_trained:
+                nlist = faiss.extract_index_ivf(target).nlist
+                step = max(1, len(ids) // (self.policy.train_per_list * nlist))
+                target.train(vectors[::step])  # evenly spaced in id order: deterministic
+            target.add_with_ids(vectors, ids)
+        except Exception:
+            log.exception("index rebuild failed; the current index keeps serving")
+            with self._lock:
+                self._log = None
+            return
+        with self._lock:
+            for operation, op_ids, op_vectors in self._log or []:
+                if operation == "add":
+                    target.add_with_ids(op_vectors, op_ids)
+                else:
+                    target.remove_ids(op_ids)
+            self._index, self._log = target, None
+            log.info("index of %d frames rebuilt as %s", target.ntotal, self.describe())
+            self._regrow_if_due()  # the atlas may have grown past the next threshold meanwhile
+
+    def _regrow_if_due(self) -> None:
+        ivf, wanted = self._ivf(), self._wanted_nlist(self.size)
+        if (ivf is None and wanted is not None) or (
+            ivf is not None and wanted is not None and wanted >= 2 * ivf.nlist
+        ):
+            self._start_rebuild(self.size)
+
+    def wait_rebuilt(self) -> None:
+        """Block until rebuilds in progress (and any they chain) have replaced the index."""
+        while (thread := self._rebuilder) is not None and thread.is_alive():
+            thread.join()
+
+    def _flat_like(self) -> Any:
+        return _flat(self.dim)
+
+    def _ivf_like(self, size: int) -> Any:
+        nlist = ivf_nlist(size)
+        name = f"IVF{nlist},{self.policy.quantizer(self.dim)}"
+        index = faiss.index_factory(self.dim, name, faiss.METRIC_INNER_PRODUCT)
+        faiss.extract_index_ivf(index).cp.niter = self.policy.kmeans_iterations
+        return index
+
+    def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
+        """The stored vectors of ``ids`` (exact for flat, decoded codes for the inverted file)."""
+        if len(ids) == 0:
+            return np.zeros((0, self.dim), np.float32)
+        ivf = self._ivf()
+        if ivf is None:
+            return self._index.reconstruct_batch(ids)  # type: ignore[no-any-return]
+        ivf.set_direct_map_type(faiss.DirectMap.Hashtable)  # type: ignore[attr-defined]
+        try:
+            return ivf.reconstruct_batch(ids)  # type: ignore[no-any-return]
+        finally:
+            ivf.set_direct_map_type(faiss.DirectMap.NoMap)  # type: ignore[attr-defined]
+
+    # ----- files -------------------------------------------------------------------------
+
+    def save(self, path: Path) -> None:
+        """Write the index atomically (temporary file, then rename)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # a name of its own per process and thread: replicas sharing a data directory may
+        # save the same index at once, and must never interleave their bytes in one file
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        with self._lock:
+            faiss.write_index(self._index, str(tmp))
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path, dim: int, policy: IndexPolicy | None = None) -> AtlasIndex:
+        return cls(dim, faiss.read_index(str(path)), policy)
+
+    def to_bytes(self) -> bytes:
+        """The index as the bytes of a FAISS file (what :meth:`save` writes)."""
+        with self._lock:
+            return bytes(faiss.serialize_index(self._index).tobytes())
+
+    @classmethod
+    def from_bytes(cls, data: bytes, policy: IndexPolicy | None = None) -> AtlasIndex:
+        """An index from the bytes of a FAISS file; its dimension is the file's."""
+        index = faiss.deserialize_index(np.frombuffer(data, np.uint8))
+        return cls(int(index.d), index, policy)
+
+    def entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every frame id held and its stored vector (decoded codes for the inverted file)."""
+        with self._lock:
+            ids = self.ids()
+            return ids, self._reconstruct(ids)
+
+
+def _flat(dim: int) -> Any:
+    return faiss.IndexIDMap2(faiss.IndexFlatIP(dim))
+
+
+def _quantizer_name(ivf: Any) -> str:
+    names = {
+        faiss.ScalarQuantizer.QT_fp16: "SQfp16",
+        faiss.ScalarQuantizer.QT_8bit: "SQ8",
+        faiss.ScalarQuantizer.QT_6bit: "SQ6",
+        faiss.ScalarQuantizer.QT_4bit: "SQ4",
+    }
+    sq = getattr(ivf, "sq", None)
+    return names.get(sq.qtype, "SQ") if sq is not None else type(ivf).__name__
+
+
+def _selector(include: np.ndarray | None, exclude: np.ndarray | None) -> Any:
+    """A FAISS id selector: only ``include`` if given, else all but ``exclude``; None: all."""
+    if include is not None:
+        return faiss.IDSelectorBatch(np.ascontiguousarray(include, np.int64))
+    if exclude is not None and len(exclude):
+        dropped = faiss.IDSelectorBatch(np.ascontiguousarray(exclude, np.int64))
+        selector: Any = faiss.IDSelectorNot(dropped)
+        selector.referenced = dropped  # keep the wrapped selector alive
+        return selector
+    return None

@@ -53,19 +53,31 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
-        return f"{_fmt(row['before'][key])} → **{_fmt(row['after'][key])}**"
+        before, after = row["before"][key], row["after"][key]
+        shown = f"**{_fmt(after)}**" if after > before else _fmt(after)  # gains only in bold
+        return f"{_fmt(before)} → {shown}"
+
+    def shots(row: dict[str, Any]) -> str:
+        used = row.get("shots_used", row["shots"])
+        return str(row["shots"]) if used == row["shots"] else f"{used} (asked {row['shots']})"
+
+    def epochs(row: dict[str, Any]) -> str:
+        text = f"{row['epochs_run']} ({row['best_epoch']})"
+        return text + ": starting heads" if row["best_epoch"] == 0 else text
 
     for row in rows:
         lines.append(
-            f"| {row['protocol']} | {row['shots']} | {row['train_frames']} "
+            f"| {row['protocol']} | {shots(row)} | {row['train_frames']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} | {arrow('recall@5', row)} "
             f"| {arrow('submap_accuracy', row)} | {_fmt(row['classifier_submap_accuracy'])} "
             f"| {arrow('auc_pr', row)} | {arrow('recall_at_100_precision', row)} "
-            f"| {_fmt(row['train_seconds'], 1)} | {row['epochs_run']} ({row['best_epoch']}) |"
+            f"| {_fmt(row['train_seconds'], 1)} | {epochs(row)} |"
         )
     lines += [
         "",
-        "Before = the untrained heads on the same test queries. `map`: K reference frames per "
+        "Before = the untrained heads on the same test queries; only gains are in bold; K is "
+        "the map shots per submap actually used (a submap keeps one frame for validation); "
+        "best epoch 0 means the job would ship its starting heads. `map`: K reference frames per "
         "submap train the heads (what a retraining job does). `revisit` (the paper's few-shot "
         "protocol): K reference frames and K query-condition frames per submap train the heads; "
         "those query frames are not test queries. Rankings are over reference frames only. "

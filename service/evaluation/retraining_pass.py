@@ -51,6 +51,7 @@ class RetrainingRow:
     train_seconds: float
     epochs_run: int
     best_epoch: int
+    shots_used: int = 0
 
     def row(self) -> dict[str, Any]:
         return {
@@ -64,11 +65,20 @@ class RetrainingRow:
             "train_seconds": self.train_seconds,
             "epochs_run": self.epochs_run,
             "best_epoch": self.best_epoch,
+            "shots_used": self.shots_used,
+            "starting_heads": self.best_epoch == 0,
         }
 
 
 def _summary(method: MethodResult) -> dict[str, Any]:
     return {k: v for k, v in method.row().items() if k not in ("pr_curve", "details")}
+
+
+def shots_used(submaps: np.ndarray, shots: np.ndarray) -> int:
+    """The most map shots any submap gave (K beyond a submap's size minus one is not used)."""
+    if len(shots) == 0:
+        return 0
+    return int(np.unique(submaps[shots], return_counts=True)[1].max())
 
 
 def query_submaps(dataset: Dataset, submap_of: Sequence[int]) -> np.ndarray:
@@ -171,10 +181,14 @@ def retraining_rows(
             ranking = rank_by_similarity(embed_vectors(heads, *test_vectors) @ references.T, k)
             per_query = (time.perf_counter() - start) * 1000.0 / max(len(test), 1)
             subset = _subset(dataset, test)
+            used = shots_used(ref_submaps, map_shots)
             name = f"retrained-{protocol}-k{k_shots}"
-            label = f"LoopNet {extractor_label} retrained, {k_shots} " + (
+            shots_text = f"{used}" if used == k_shots else f"{used} (K={k_shots} asked)"
+            label = f"LoopNet {extractor_label} retrained, {shots_text} " + (
                 "map shots/submap" if protocol == "map" else "map + revisit shots/submap"
             )
+            if int(trained.metrics["best_epoch"]) == 0:
+                label += ": best epoch 0, i.e. the starting heads"
             after = evaluate_ranking(
                 name,
                 label,
@@ -215,6 +229,7 @@ def retraining_rows(
                     train_seconds=float(trained.metrics["train_seconds"]),
                     epochs_run=int(trained.metrics["epochs_run"]),
                     best_epoch=int(trained.metrics["best_epoch"]),
+                    shots_used=used,
                 )
             )
     return rows

@@ -33,6 +33,7 @@ from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
 from service.evaluation.baselines.seqslam import full_seqslam
+from service.evaluation.calibrated_pass import calibrated_methods
 from service.evaluation.datasets import Dataset, load_dataset
 from service.evaluation.metrics import rank_by_similarity, summary
 from service.evaluation.protocol import (
@@ -59,6 +60,7 @@ log = logging.getLogger(__name__)
 
 TARGET_MARGIN = 0.10
 SPEEDS = SequenceSettings().speeds
+UNCALIBRATED = "loopnet-uncalibrated"  # kind of today's service-path row, kept for comparison
 EXTRACTOR_LABELS = {"disk": "DISK", "xfeat": "XFeat"}
 
 
@@ -128,8 +130,14 @@ class EvalResult:
 def _alpha_label(extractor: str, alpha: float) -> tuple[str, str]:
     name = EXTRACTOR_LABELS.get(extractor, extractor)
     if alpha == 1.0:
-        return f"{extractor}-local-only", f"local only ({name} aggregated, α=1)"
-    return f"{extractor}-alpha{alpha:g}", f"fused {name} α={alpha:g} (untrained heads)"
+        return (
+            f"{extractor}-local-only-uncalibrated",
+            f"local only ({name} mean, uncalibrated, α=1)",
+        )
+    return (
+        f"{extractor}-uncalibrated-alpha{alpha:g}",
+        f"fused {name} α={alpha:g} (uncalibrated, untrained heads)",
+    )
 
 
 def _loopnet_methods(
@@ -152,9 +160,9 @@ def _loopnet_methods(
         extraction["local"] + np.array(ms["global_features"])[len(dataset.references) :]
     )
     service_method = evaluate_ranking(
-        f"loopnet-{extractor}",
-        f"LoopNet {name} α={preset_alpha:g} (service path)",
-        "loopnet",
+        f"loopnet-{extractor}-uncalibrated",
+        f"LoopNet {name} α={preset_alpha:g} uncalibrated (service path today)",
+        UNCALIBRATED,
         result.ranking,
         dataset,
         submap_of,
@@ -171,8 +179,8 @@ def _loopnet_methods(
         branch = "global" if alpha == 0.0 else "local" if alpha == 1.0 else "fused"
         if alpha == 0.0:
             method_name, label = (
-                "global-only",
-                f"global only ({result.preset.backbone.name} GeM, α=0)",
+                "global-only-uncalibrated",
+                f"global only ({result.preset.backbone.name} GeM raw, α=0)",
             )
         else:
             method_name, label = _alpha_label(extractor, alpha)
@@ -289,7 +297,7 @@ def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
     rivals = [
         m
         for m in methods
-        if m.kind == "baseline" or m.name == "global-only" or m.name.endswith("local-only")
+        if m.kind == "baseline" or m.name.startswith("global-only") or "-local-only" in m.name
     ]
     if not rivals:
         return {"verdict": "no baseline or single-branch ablation ran", "met": None}
@@ -419,10 +427,21 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
         )
-        for method in _loopnet_methods(
+        calibrated = calibrated_methods(
+            dataset,
+            submap_of,
+            extractor,
+            EXTRACTOR_LABELS.get(extractor, extractor),
+            result,
+            alphas=config.alphas,
+            k=config.k,
+            with_global_only=first_pass is None,
+        )
+        uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
-        ):
-            (global_only if method.name == "global-only" else methods).append(method)
+        )
+        for method in calibrated + uncalibrated:
+            (global_only if method.name.startswith("global-only") else methods).append(method)
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
@@ -439,7 +458,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             dataset,
             submap_of,
             first_pass,
-            next(m for m in methods if m.kind == "loopnet"),
+            next(m for m in methods if m.kind == UNCALIBRATED),
             shots=config.retrain_shots,
             protocols=config.retrain_protocols,
             k=config.k,

@@ -24,10 +24,14 @@ from service.atlas.catalog import AtlasService
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
+from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import ModelPreset
 from service.runtime import Runtime
+from service.storage import repository as repo
+from service.storage.feature_store import load_calibration_inputs
 
 ATLAS = "evaluation"
 ROBOT = "reference"
@@ -41,6 +45,9 @@ class PassResult:
     Attributes:
         ranking: the service's answers (``Q x k``, reference indices, cosine similarities).
         reference_vectors, query_vectors: ``(D, R)`` of every frame, for the ablations.
+        stored_references: the references' features as the atlas stores them, read back by
+            :func:`load_calibration_inputs` (what a calibration job reads).
+        query_local: the queries' local features (for calibrated embeddings).
         stage_ms: per-frame milliseconds of each stage (decode, CNNs, ingest, heads, search).
         query_ms: per-query end-to-end milliseconds (decode + CNNs + heads + search).
         keypoints: keypoints found per frame, references then queries.
@@ -58,6 +65,8 @@ class PassResult:
     cached: bool
     threshold: float
     signature: dict[str, object] = field(default_factory=dict)
+    stored_references: CalibrationInputs | None = None
+    query_local: list[LocalFeatures] = field(default_factory=list)
 
 
 # ----- feature cache ----------------------------------------------------------------------
@@ -113,6 +122,59 @@ class CachedFeatures:
             return cls(**{name: data[name] for name in data.files})
 
 
+class LocalFeatureCache:
+    """Every frame's keypoints, descriptors (float16, as the feature store keeps them) and
+    scores, beside the vector cache: calibration needs the descriptors themselves."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    @staticmethod
+    def for_vectors(vector_cache: Path) -> LocalFeatureCache:
+        return LocalFeatureCache(vector_cache.with_name(vector_cache.stem + "-local.npz"))
+
+    def load(self) -> list[LocalFeatures] | None:
+        if not self.path.is_file():
+            return None
+        with np.load(self.path) as data:
+            offsets = data["offsets"]
+            keypoints, descriptors, scores = data["keypoints"], data["descriptors"], data["scores"]
+        return [
+            LocalFeatures(keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b])
+            for a, b in zip(offsets[:-1], offsets[1:], strict=True)
+        ]
+
+    def save(self, frames: Sequence[LocalFeatures]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        offsets = np.cumsum([0, *(f.count for f in frames)])
+        tmp = self.path.with_name(self.path.name + ".tmp.npz")
+        np.savez(
+            tmp,
+            offsets=offsets,
+            keypoints=np.concatenate([f.keypoints for f in frames]).astype(np.float32),
+            descriptors=np.concatenate([f.descriptors for f in frames]).astype(np.float16),
+            scores=np.concatenate([f.scores for f in frames]).astype(np.float32),
+        )
+        tmp.replace(self.path)
+
+
+def extract_local_features(
+    pipeline: FeaturePipeline, paths: Sequence[Path], desc: str
+) -> list[LocalFeatures]:
+    """Only the local extractor over ``paths`` (the backbone's vectors are cached already)."""
+    frames = []
+    for path in tqdm(paths, desc=desc, unit="img", leave=False):
+        local = pipeline.local.extract(decode_image(path.read_bytes()))
+        frames.append(
+            LocalFeatures(
+                local.keypoints,
+                local.descriptors.astype(np.float16).astype(np.float32),
+                local.scores,
+            )
+        )
+    return frames
+
+
 # ----- the pass ---------------------------------------------------------------------------
 
 
@@ -121,11 +183,21 @@ def submap_name(index: int) -> str:
 
 
 def _frames(
-    service: AtlasService, paths: Sequence[Path], cached: CachedFeatures | None, desc: str
+    service: AtlasService,
+    paths: Sequence[Path],
+    cached: CachedFeatures | None,
+    local: list[LocalFeatures] | None,
+    desc: str,
 ) -> Iterator[tuple[FrameFeatures, float]]:
     dim = service.pipeline.local.descriptor_dim
     for i, path in enumerate(tqdm(paths, desc=desc, unit="img", leave=False)):
-        yield cached.frame(i, dim) if cached is not None else service.extract(path.read_bytes())
+        if cached is None:
+            yield service.extract(path.read_bytes())
+            continue
+        features, decode_ms = cached.frame(i, dim)
+        if local is not None:
+            features.local = local[i]
+        yield features, decode_ms
 
 
 def run_service_pass(
@@ -146,12 +218,21 @@ def run_service_pass(
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None and path.is_file() else None
     images = list(all_images(dataset))
+    local_cache = LocalFeatureCache.for_vectors(path) if path is not None else None
+    cached_local = local_cache.load() if local_cache is not None else None
+    if cached is not None and cached_local is None:
+        cached_local = extract_local_features(pipeline, images, f"{label} keypoints")
+        if local_cache is not None:
+            local_cache.save(cached_local)
+    fresh_local: list[LocalFeatures] = []
+    stored_references: CalibrationInputs | None = None
     n_refs = len(dataset.references)
     local_vectors, global_vectors, keypoints, sizes, extraction_ms = [], [], [], [], []
     stage_ms: dict[str, list[float]] = {
         name: [] for name in (*EXTRACTION_STAGES, "ingest", "heads", "search")
     }
     query_ms: list[float] = []
+    query_local: list[LocalFeatures] = []
     indices, scores = [], []
 
     with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
@@ -164,10 +245,14 @@ def run_service_pass(
         for submap in sorted(set(submap_of)):
             service.create_submap(ATLAS, submap_name(submap))
         frame_to_reference: dict[int, int] = {}
-        frames = _frames(service, images, cached, f"{label}: {dataset.name}")
+        frames = _frames(service, images, cached, cached_local, f"{label}: {dataset.name}")
         for i, (features, decode_ms) in enumerate(frames):
             if on_features is not None and cached is None:
                 on_features(images[i], features)
+            if cached is None:
+                fresh_local.append(_as_stored(features.local))
+            if i == n_refs:
+                stored_references = _read_back(service)
             local_vectors.append(features.local_vector)
             global_vectors.append(features.global_vector)
             keypoints.append(features.local.count)
@@ -187,6 +272,7 @@ def run_service_pass(
                 stage_ms["ingest"].append((time.perf_counter() - start) * 1000.0)
                 frame_to_reference[frame.id] = i
                 continue
+            query_local.append(_as_stored(features.local))
             answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
             found = [frame_to_reference[c.frame_id] for c in answer.candidates]
             indices.append(found + [-1] * (k - len(found)))
@@ -194,6 +280,8 @@ def run_service_pass(
             stage_ms["heads"].append(answer.timings_ms["heads"])
             stage_ms["search"].append(answer.timings_ms["search"])
             query_ms.append(sum(stages) + answer.timings_ms["heads"] + answer.timings_ms["search"])
+        if stored_references is None:  # a dataset without queries
+            stored_references = _read_back(service)
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
@@ -205,6 +293,8 @@ def run_service_pass(
             image_size=np.array(sizes, np.int64),
             stage_ms=np.array(extraction_ms, np.float64),
         ).save(path)
+        if local_cache is not None:
+            local_cache.save(fresh_local)
     local_all, global_all = np.stack(local_vectors), np.stack(global_vectors)
     return PassResult(
         preset=pipeline.preset,
@@ -220,4 +310,20 @@ def run_service_pass(
         cached=cached is not None,
         threshold=threshold,
         signature=pipeline.signature,
+        stored_references=stored_references,
+        query_local=query_local,
     )
+
+
+def _as_stored(local: LocalFeatures) -> LocalFeatures:
+    """Descriptors rounded to float16, as the feature store gives them back."""
+    return LocalFeatures(
+        local.keypoints, local.descriptors.astype(np.float16).astype(np.float32), local.scores
+    )
+
+
+def _read_back(service: AtlasService) -> CalibrationInputs:
+    """The references as a calibration job reads them: from the atlas's feature store."""
+    with service.sessions() as session:
+        atlas = repo.get_atlas(session, name=ATLAS)
+        return load_calibration_inputs(session, atlas.id)

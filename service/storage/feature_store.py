@@ -10,6 +10,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage.models import Frame, FrameFeatureRow
 
@@ -116,4 +117,42 @@ def load_stored_vectors(session: Session, atlas_id: int) -> StoredVectors:
         np.concatenate([b.global_ for b in batches]),
         np.concatenate([b.submaps for b in batches]),
         [robot for b in batches for robot in b.robots],
+    )
+
+
+def load_calibration_inputs(
+    session: Session, atlas_id: int, *, batch: int = 1024
+) -> CalibrationInputs:
+    """An atlas's stored descriptors, scores, backbone vectors, robots and frame order: what a
+    calibration is fitted on (descriptors stay float16 until aggregated)."""
+    query = (
+        select(
+            Frame.id,
+            Frame.robot_id,
+            FrameFeatureRow.descriptors,
+            FrameFeatureRow.descriptor_dim,
+            FrameFeatureRow.scores,
+            FrameFeatureRow.global_vector,
+        )
+        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
+        .where(Frame.atlas_id == atlas_id)
+        .order_by(Frame.id)
+    )
+    ids: list[int] = []
+    robots: list[str] = []
+    descriptors: list[np.ndarray] = []
+    scores: list[np.ndarray] = []
+    global_vectors: list[np.ndarray] = []
+    for row in session.execute(query.execution_options(yield_per=batch)):
+        ids.append(row.id)
+        robots.append(row.robot_id)
+        descriptors.append(np.frombuffer(row.descriptors, "<f2").reshape(-1, row.descriptor_dim))
+        scores.append(np.frombuffer(row.scores, "<f4"))
+        global_vectors.append(np.frombuffer(row.global_vector, "<f4"))
+    return CalibrationInputs(
+        descriptors=descriptors,
+        scores=scores,
+        global_vectors=np.stack(global_vectors) if global_vectors else np.zeros((0, 0), np.float32),
+        robots=robots,
+        order=np.array(ids, np.int64),
     )

@@ -37,9 +37,12 @@ def test_one_run_writes_every_method_into_the_report(slice_run) -> None:  # type
         assert (output / name).stat().st_size > 0, name
     report = json.loads((output / "report.json").read_text())
     names = [m["name"] for m in report["methods"]]
-    assert names[0] == "loopnet-disk"  # the service path with the default extractor
-    expected = {"loopnet-xfeat", "disk-alpha0.5", "disk-alpha0.3", "disk-local-only"}
-    expected |= {"xfeat-local-only", "global-only", "bow-orb", "seqslam-sad"}
+    assert names[0] == "loopnet-disk"  # the calibrated service path, default extractor
+    expected = {"loopnet-xfeat", "disk-calibrated-alpha0.7", "disk-calibrated-alpha0.3"}
+    expected |= {"disk-local-only", "xfeat-local-only", "global-only", "bow-orb", "seqslam-sad"}
+    expected |= {"disk-mean-calibrated", "disk-calibrated-unwhitened"}
+    expected |= {"loopnet-disk-uncalibrated", "disk-uncalibrated-alpha0.5"}
+    expected |= {"disk-local-only-uncalibrated", "global-only-uncalibrated"}
     assert expected <= set(names)
     assert report["dataset"]["references"] == PLACES and report["dataset"]["queries"] == 22
     assert "99x56 upsampled to 256x145" in report["working_sizes"]["note"]
@@ -50,7 +53,8 @@ def test_one_run_writes_every_method_into_the_report(slice_run) -> None:  # type
         assert m["query_ms"]["n"] == 22
     assert report["target"]["met"] in (True, False) and "margin" in report["target"]["verdict"]
     markdown = (output / "report.md").read_text()
-    assert "| LoopNet DISK α=0.7 (service path) |" in markdown and "±2 frames" in markdown
+    assert "| LoopNet DISK calibrated α=0.5 (service path) |" in markdown
+    assert "±2 frames" in markdown
 
 
 @pytest.mark.slow
@@ -58,10 +62,16 @@ def test_service_path_and_ablation_path_agree_and_the_branches_are_real(slice_ru
     _, result = slice_run
     by_name = {m.name: m for m in result.methods}
     # alpha 0.7 re-embedded from the stored vectors ranks as the service did
-    assert by_name["loopnet-disk"].details["top1_agreement_with_ablation_path"] == 1.0
+    uncalibrated = by_name["loopnet-disk-uncalibrated"]
+    assert uncalibrated.details["top1_agreement_with_ablation_path"] == 1.0
     # real pretrained features on a real route: far above chance (about 5 of 20 within ±2)
-    assert by_name["global-only"].recall[1] >= 0.7
-    assert by_name["disk-local-only"].recall[5] >= 0.7
+    assert by_name["global-only-uncalibrated"].recall[1] >= 0.7
+    assert by_name["disk-local-only-uncalibrated"].recall[5] >= 0.7
+    # the calibration saw the 20 stored references only, and kept few axes for so few
+    calibrated = by_name["loopnet-disk"]
+    assert calibrated.details["fitted_on"].startswith("stored reference frames only")
+    assert calibrated.details["local_dims"] <= 10 and calibrated.details["global_dims"] <= 10
+    assert calibrated.recall[5] >= 0.7
     assert by_name["seqslam-sad"].recall[5] >= 0.5
 
 
@@ -84,9 +94,14 @@ def rerun_from_cache(config: EvalConfig, folder: str, **changes: object) -> Eval
 def test_a_second_run_reads_the_feature_cache(slice_run) -> None:  # type: ignore[no-untyped-def]
     config, first = slice_run
     second = rerun_from_cache(config, "again")
-    (again,) = second.methods
+    again, before = (
+        {m.name: m for m in run.methods}["loopnet-disk-uncalibrated"] for run in (second, first)
+    )
     assert again.details["features_from_cache"] is True
-    assert (again.ranking.indices == first.methods[0].ranking.indices).all()
+    assert (again.ranking.indices == before.ranking.indices).all()
+    # the descriptors came back from the cache too: the calibrated rows agree
+    calibrated = [{m.name: m for m in run.methods}["loopnet-disk"] for run in (second, first)]
+    assert (calibrated[0].ranking.indices == calibrated[1].ranking.indices).all()
 
 
 @pytest.mark.slow
@@ -108,7 +123,8 @@ def test_retrained_rows_train_on_shots_and_test_on_the_other_queries(slice_run) 
         for method in (row.before, row.after):
             assert 0.0 <= method.recall[1] <= method.recall[5] <= 1.0
     # "before" is the untrained service ranking restricted to the same test queries
-    assert rows[("map", 1)].before.recall == first.methods[0].recall
+    uncalibrated = {m.name: m for m in first.methods}["loopnet-disk-uncalibrated"]
+    assert rows[("map", 1)].before.recall == uncalibrated.recall
     report = json.loads((config.output / "retrained" / "report.json").read_text())
     assert [r["protocol"] for r in report["retraining"]] == ["map", "map", "revisit", "revisit"]
     assert "retrained-revisit-k3" in [m["name"] for m in report["methods"]]
@@ -143,13 +159,18 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     ]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    assert "| LoopNet XFeat α=0.7 (service path) |" in printed
+    assert "| LoopNet XFeat calibrated α=0.5 (service path) |" in printed
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["command"] == "loopnet " + " ".join(argv)  # the command that reproduces it
     assert [m["name"] for m in report["methods"]] == [
         "loopnet-xfeat",
         "xfeat-local-only",
+        "xfeat-mean-calibrated",
+        "xfeat-calibrated-unwhitened",
+        "loopnet-xfeat-uncalibrated",
+        "xfeat-local-only-uncalibrated",
         "global-only",
+        "global-only-uncalibrated",
         "retrained-map-k1",
         "seqslam-sad",
     ]

@@ -14,6 +14,7 @@ from service.ml.training import (
     TrainingData,
     contrastive_loss,
     evaluate,
+    frame_loss,
     split_shots,
     train_heads,
 )
@@ -59,6 +60,20 @@ def test_contrastive_loss_known_values() -> None:
     assert contrastive_loss(e, torch.tensor([0, 1, 2]), margin=2.0).item() == pytest.approx(
         expected, rel=1e-4
     )
+
+
+def test_frame_loss_rewards_frames_that_stay_apart() -> None:
+    distinct = torch.eye(4)
+    collapsed = torch.ones(4, 4)
+    # each view finds its own twin among distinct frames; collapsed frames are a coin toss
+    assert frame_loss(distinct, distinct, 0.1) < 1e-3
+    assert frame_loss(collapsed, collapsed, 0.1).item() == pytest.approx(np.log(4), rel=1e-5)
+    # with the term on, training still learns the submaps
+    config = TrainingConfig(shots=3, epochs=40, embed_dim=16, frame_weight=1.0)
+    after = train_heads(clustered(noise=0.9), BASE, config).metrics["validation_after"]
+    assert after["classifier_accuracy"] > 0.8
+    with pytest.raises(ValueError, match="frame_weight"):
+        TrainingConfig(frame_weight=-1.0)
 
 
 def test_both_losses_fall_and_both_heads_change() -> None:

@@ -1,0 +1,387 @@
+"""An atlas's calibration: how stored features become a fused embedding and a calibrated score.
+
+A :class:`Calibration` bundles what is learned, without labels, from an atlas's own stored
+features: the local aggregator (a VLAD vocabulary, or the plain mean), one whitening per
+branch (:mod:`service.ml.whitening`), the fusion weight ``alpha``, and the impostor model that
+turns a cosine into a score with a fixed meaning (:mod:`service.ml.impostors`).
+
+Fusion keeps the paper's form, ``F = alpha * D_w + (1 - alpha) * R_w`` with the two whitened
+branches side by side, then L2-normalised: exactly what untrained :class:`LoopNetHeads` compute
+on the branch vectors (see :meth:`Calibration.heads_config`), so retrained heads start from
+the calibrated branches. Everything is computed from stored features (descriptors, scores,
+backbone vectors): re-embedding an atlas never runs a CNN.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.ml.aggregation import l2_normalize
+from service.ml.aggregators import Aggregator, aggregator_from_state, fit_aggregator
+from service.ml.features import LocalFeatures
+from service.ml.heads import HeadsConfig
+from service.ml.impostors import ImpostorModel, impostor_pairs
+from service.ml.whitening import Whitening, WhiteningConfig
+
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """What a calibration fits, and with how much data.
+
+    Attributes:
+        aggregator: ``vlad`` or ``mean`` (see :mod:`service.ml.aggregators`).
+        words: VLAD vocabulary size.
+        local, global_: each branch's reduction and whitening.
+        alpha: the fusion weight of the local branch.
+        descriptor_sample: descriptors the vocabulary is learned on, at most.
+        fit_frames: frames each whitening is fitted on, at most (sampled).
+        impostor_pairs: impostor pairs the score model is fitted on, at most.
+        impostor_holdout: share of the fitting frames left out of a second, probe whitening
+            so that impostor pairs pair unseen frames with seen ones, as queries do.
+        seed: every sample and the k-means start from it (a calibration is reproducible).
+    """
+
+    aggregator: str = "vlad"
+    words: int = 64
+    local: WhiteningConfig = field(default_factory=WhiteningConfig)
+    global_: WhiteningConfig = field(default_factory=WhiteningConfig)
+    alpha: float = 0.5
+    descriptor_sample: int = 100_000
+    fit_frames: int = 20_000
+    impostor_pairs: int = 100_000
+    impostor_holdout: float = 0.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must lie in [0, 1], got {self.alpha}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> CalibrationConfig:
+        return cls(
+            **{
+                **data,
+                "local": WhiteningConfig(**data["local"]),
+                "global_": WhiteningConfig(**data["global_"]),
+            }
+        )
+
+
+@dataclass
+class CalibrationInputs:
+    """Stored features of an atlas's frames, as a calibration job reads them back.
+
+    Attributes:
+        descriptors: per frame, ``N_i x d`` local descriptors (float16 as stored is fine).
+        scores: per frame, ``N_i`` detection scores.
+        global_vectors: ``n x C`` backbone vectors R.
+        robots: per frame, the robot that recorded it.
+        order: per frame, its place in its robot's sequence (frame id or timestamp).
+    """
+
+    descriptors: Sequence[np.ndarray]
+    scores: Sequence[np.ndarray]
+    global_vectors: np.ndarray
+    robots: Sequence[str]
+    order: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.global_vectors)
+        if (
+            not len(self.descriptors)
+            == len(self.scores)
+            == len(self.robots)
+            == len(self.order)
+            == n
+        ):
+            raise ValueError(
+                f"calibration inputs disagree on the frame count: {len(self.descriptors)} "
+                f"descriptor sets, {len(self.scores)} score sets, {n} global vectors, "
+                f"{len(self.robots)} robots, {len(self.order)} order keys"
+            )
+
+    def __len__(self) -> int:
+        return len(self.global_vectors)
+
+
+@dataclass
+class FittedCalibration:
+    """A fitted calibration and the branch vectors of the frames it was fitted on
+    (so the job re-embeds those frames without aggregating them twice)."""
+
+    calibration: Calibration
+    local_branch: np.ndarray
+    global_branch: np.ndarray
+    timings_s: dict[str, float]
+
+
+class Calibration:
+    """Aggregator + branch whitenings + alpha + impostor model of one model version."""
+
+    def __init__(
+        self,
+        config: CalibrationConfig,
+        aggregator: Aggregator,
+        local_whitening: Whitening,
+        global_whitening: Whitening,
+        impostors: ImpostorModel | None,
+    ) -> None:
+        self.config = config
+        self.aggregator = aggregator
+        self.local_whitening = local_whitening
+        self.global_whitening = global_whitening
+        self.impostors = impostors
+
+    @property
+    def alpha(self) -> float:
+        return self.config.alpha
+
+    def heads_config(self) -> HeadsConfig:
+        """Heads over the calibrated branches; untrained, they compute :meth:`fuse`."""
+        return HeadsConfig(
+            local_dim=self.local_whitening.dim,
+            global_dim=self.global_whitening.dim,
+            alpha=self.alpha,
+        )
+
+    @property
+    def dim(self) -> int:
+        return self.local_whitening.dim + self.global_whitening.dim
+
+    # ----- embedding ----------------------------------------------------------------------
+
+    def aggregate(
+        self, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
+    ) -> np.ndarray:
+        """``n x aggregator.dim`` raw local vectors of ``n`` frames."""
+        return (
+            np.stack(
+                [
+                    self.aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
+                    for d, s in zip(descriptors, scores, strict=True)
+                ]
+            )
+            if len(descriptors)
+            else np.zeros((0, self.aggregator.dim), np.float32)
+        )
+
+    def branch_vectors(
+        self,
+        descriptors: Sequence[np.ndarray],
+        scores: Sequence[np.ndarray],
+        global_vectors: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The calibrated branches ``(D_w, R_w)`` of ``n`` frames, each row unit (or zero)."""
+        raw = self.aggregate(descriptors, scores)
+        local = self.local_whitening.transform(raw)
+        local[~raw.any(1)] = 0.0  # no keypoints: no local evidence, as before
+        return local, self.global_whitening.transform(global_vectors)
+
+    def fuse(
+        self, local_branch: np.ndarray, global_branch: np.ndarray, alpha: float | None = None
+    ) -> np.ndarray:
+        """``[alpha * D_w, (1 - alpha) * R_w]``, L2-normalised (alpha: the calibration's)."""
+        a = self.alpha if alpha is None else alpha
+        return l2_normalize(np.hstack([a * local_branch, (1.0 - a) * global_branch]))
+
+    def embed_many(
+        self,
+        descriptors: Sequence[np.ndarray],
+        scores: Sequence[np.ndarray],
+        global_vectors: np.ndarray,
+    ) -> np.ndarray:
+        """``n x dim`` fused unit embeddings of ``n`` frames from their stored features."""
+        return self.fuse(*self.branch_vectors(descriptors, scores, global_vectors))
+
+    def embed(self, local: LocalFeatures, global_vector: np.ndarray) -> np.ndarray:
+        """The fused unit embedding of one frame (ingest and query)."""
+        return self.embed_many([local.descriptors], [local.scores], global_vector[None])[0]
+
+    def score(self, cosines: np.ndarray | float) -> np.ndarray:
+        """The calibrated score of fused cosines (see :mod:`service.ml.impostors`)."""
+        if self.impostors is None:
+            raise RuntimeError("this calibration was fitted without an impostor model")
+        return self.impostors.score(cosines)
+
+    # ----- persistence --------------------------------------------------------------------
+
+    def save(self, path: Path) -> None:
+        """One ``.npz`` (arrays + the config as JSON), written atomically."""
+        arrays: dict[str, np.ndarray] = {
+            "meta": np.array(
+                json.dumps(
+                    {
+                        "format": FORMAT_VERSION,
+                        "config": self.config.to_dict(),
+                        "aggregator": self.aggregator.name,
+                        "impostors": self.impostors is not None,
+                    }
+                )
+            )
+        }
+        parts: dict[str, dict[str, np.ndarray]] = {
+            "aggregator": self.aggregator.state(),
+            "local": self.local_whitening.state(),
+            "global": self.global_whitening.state(),
+        }
+        if self.impostors is not None:
+            parts["impostors"] = self.impostors.state()
+        for prefix, state in parts.items():
+            arrays.update({f"{prefix}.{key}": value for key, value in state.items()})
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> Calibration:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data["meta"]))
+            if meta.get("format") != FORMAT_VERSION:
+                raise ValueError(f"{path}: unsupported calibration format {meta.get('format')}")
+
+            def part(prefix: str) -> dict[str, np.ndarray]:
+                return {
+                    key.split(".", 1)[1]: data[key]
+                    for key in data.files
+                    if key.startswith(prefix + ".")
+                }
+
+            return cls(
+                CalibrationConfig.from_dict(meta["config"]),
+                aggregator_from_state(meta["aggregator"], part("aggregator")),
+                Whitening.from_state(part("local")),
+                Whitening.from_state(part("global")),
+                ImpostorModel.from_state(part("impostors")) if meta["impostors"] else None,
+            )
+
+    # ----- fitting ------------------------------------------------------------------------
+
+    @classmethod
+    def fit(cls, inputs: CalibrationInputs, config: CalibrationConfig) -> FittedCalibration:
+        """Fit every part on an atlas's stored features (no labels); see the module doc."""
+        if len(inputs) < 3:
+            raise ValueError(f"a calibration needs at least 3 frames, got {len(inputs)}")
+        timings: dict[str, float] = {}
+        rng = np.random.default_rng(config.seed)
+        start = time.perf_counter()
+        sample = descriptor_sample(inputs.descriptors, config.descriptor_sample, rng)
+        if config.aggregator == "vlad" and len(sample) < config.words:
+            raise ValueError(
+                f"the atlas holds {len(sample)} descriptors, too few for {config.words} words"
+            )
+        aggregator = fit_aggregator(config.aggregator, sample, words=config.words, seed=config.seed)
+        timings["vocabulary"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        local_raw = np.stack(
+            [
+                aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
+                for d, s in zip(inputs.descriptors, inputs.scores, strict=True)
+            ]
+        )
+        timings["aggregate"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        has_local = local_raw.any(1)  # frames without keypoints aggregate to zero
+        fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
+        calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
+        timings["whitening"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        local_branch = calibration.local_whitening.transform(local_raw)
+        local_branch[~has_local] = 0.0
+        global_branch = calibration.global_whitening.transform(inputs.global_vectors)
+        timings["transform"] = time.perf_counter() - start
+
+        # Impostor cosines between frames the whitening has not seen and frames it has, as a
+        # query meets stored frames: in-sample pairs look more orthogonal than any query would.
+        start = time.perf_counter()
+        held = np.zeros(len(inputs), bool)
+        held[fit_rows[: max(1, int(round(config.impostor_holdout * len(fit_rows))))]] = True
+        probe = _fit_branches(
+            config, aggregator, local_raw, inputs.global_vectors, fit_rows[~held[fit_rows]]
+        )
+        probe_local = probe.local_whitening.transform(local_raw)
+        probe_local[~has_local] = 0.0
+        fused = probe.fuse(probe_local, probe.global_whitening.transform(inputs.global_vectors))
+        first, second = impostor_pairs(
+            inputs.robots,
+            np.asarray(inputs.order),
+            pairs=config.impostor_pairs,
+            seed=config.seed,
+            first_from=held,
+        )
+        cosines = np.concatenate(
+            [
+                np.einsum("ij,ij->i", fused[first[i : i + 16_384]], fused[second[i : i + 16_384]])
+                for i in range(0, len(first), 16_384)
+            ]
+        )
+        calibration.impostors = ImpostorModel.fit(cosines)
+        timings["impostors"] = time.perf_counter() - start
+        return FittedCalibration(calibration, local_branch, global_branch, timings)
+
+    def with_alpha(self, alpha: float) -> Calibration:
+        """The same branches at another fusion weight (the impostor model is not refitted)."""
+        return Calibration(
+            replace(self.config, alpha=alpha),
+            self.aggregator,
+            self.local_whitening,
+            self.global_whitening,
+            None,
+        )
+
+
+def _fit_branches(
+    config: CalibrationConfig,
+    aggregator: Aggregator,
+    local_raw: np.ndarray,
+    global_vectors: np.ndarray,
+    rows: np.ndarray,
+) -> Calibration:
+    """Both whitenings fitted on ``rows`` (local: those with keypoints); no impostor model."""
+    local_rows = rows[local_raw[rows].any(1)]
+    if len(local_rows) < 2:
+        raise ValueError("fewer than 2 frames with keypoints: the local branch cannot be fitted")
+    if len(rows) < 2:
+        raise ValueError("fewer than 2 frames: the global branch cannot be fitted")
+    return Calibration(
+        config,
+        aggregator,
+        Whitening.fit(local_raw[local_rows], config.local, seed=config.seed),
+        Whitening.fit(global_vectors[rows], config.global_, seed=config.seed),
+        None,
+    )
+
+
+def descriptor_sample(
+    descriptors: Sequence[np.ndarray], size: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Up to ``size`` descriptors drawn evenly across frames (float32), in one pass."""
+    per_frame = max(1, int(np.ceil(size / max(len(descriptors), 1))))
+    chunks, dim = [], 0
+    for d in descriptors:  # one pass: a job reads each frame's blob once here
+        dim = d.shape[1]
+        if len(d) == 0:
+            continue
+        take = rng.choice(len(d), size=min(per_frame, len(d)), replace=False)
+        chunks.append(np.asarray(d[np.sort(take)], np.float32))
+    if not chunks:
+        return np.zeros((0, dim), np.float32)
+    sample = np.concatenate(chunks)
+    if len(sample) > size:
+        sample = sample[rng.choice(len(sample), size=size, replace=False)]
+    return sample

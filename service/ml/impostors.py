@@ -1,0 +1,143 @@
+"""A similarity score with a fixed meaning: how rarely two different places look this alike.
+
+At calibration an atlas's own *impostor* pairs are sampled: stored frames that cannot be the
+same place without any label, namely frames of one robot far apart in its sequence (frames of
+different robots and the odd true loop closure among far-apart frames are rare enough to
+leave the estimate's tail almost untouched). Their cosines give the impostor distribution, and
+a cosine ``c`` maps to
+
+    score(c) = -log10 P(impostor cosine >= c)
+
+so score 3 means "one impostor pair in a thousand is this similar", on every atlas and every
+model version. The survival function is empirical up to the top ``tail_fraction`` of impostor
+cosines and an exponential tail beyond (peaks over threshold), so scores above the largest
+sampled impostor stay finite and ordered.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def impostor_pairs(
+    robots: Sequence[str],
+    order: np.ndarray,
+    *,
+    pairs: int = 200_000,
+    min_gap: int | None = None,
+    seed: int = 0,
+    first_from: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)`` of frames that are not the same place by sequence alone.
+
+    ``order`` ranks each frame within its robot's sequence (frame ids or timestamps). Pairs of
+    one robot need at least ``min_gap`` frames between them (default: a twentieth of the
+    robot's frames, at least 5); pairs of different robots are kept. With ``first_from`` (a
+    mask), every pair's first frame is inside the mask and its second outside.
+    """
+    n = len(robots)
+    if n < 2:
+        raise ValueError(f"impostor pairs need at least 2 frames, got {n}")
+    codes = np.unique(np.asarray(robots), return_inverse=True)[1].reshape(-1)
+    rank = np.empty(n, np.int64)
+    sizes = np.bincount(codes)
+    for code in range(len(sizes)):
+        members = np.flatnonzero(codes == code)
+        rank[members[np.argsort(order[members], kind="stable")]] = np.arange(len(members))
+    gap = np.maximum(5, sizes // 20)[codes] if min_gap is None else np.full(n, min_gap, np.int64)
+    rng = np.random.default_rng(seed)
+    if first_from is None:
+        first, second = rng.integers(0, n, size=(2, pairs * 2))
+    else:
+        inside, outside = np.flatnonzero(first_from), np.flatnonzero(~first_from)
+        if len(inside) == 0 or len(outside) == 0:
+            raise ValueError("first_from must leave frames on both sides")
+        first = inside[rng.integers(0, len(inside), pairs * 2)]
+        second = outside[rng.integers(0, len(outside), pairs * 2)]
+    keep = (codes[first] != codes[second]) | (np.abs(rank[first] - rank[second]) >= gap[first])
+    first, second = first[keep][:pairs], second[keep][:pairs]
+    if len(first) == 0:
+        raise ValueError("no frame pairs are far enough apart to serve as impostors")
+    return first, second
+
+
+@dataclass
+class ImpostorModel:
+    """The impostor cosines' survival function, stored as quantiles plus an exponential tail.
+
+    Attributes:
+        quantiles: ``Q`` ascending cosines at probabilities ``levels``.
+        levels: ``Q`` cumulative probabilities in [0, 1 - tail_fraction].
+        tail_start: the cosine where the exponential tail begins.
+        tail_fraction: impostor pairs above ``tail_start``.
+        tail_scale: the tail's mean excess (cosine units).
+        pairs: impostor pairs the model was fitted on.
+    """
+
+    quantiles: np.ndarray
+    levels: np.ndarray
+    tail_start: float
+    tail_fraction: float
+    tail_scale: float
+    pairs: int
+
+    @classmethod
+    def fit(cls, cosines: np.ndarray, *, tail_fraction: float = 0.01) -> ImpostorModel:
+        values = np.sort(np.asarray(cosines, np.float64))
+        if len(values) < 100:
+            raise ValueError(f"an impostor model needs at least 100 pairs, got {len(values)}")
+        tail_start = float(np.quantile(values, 1.0 - tail_fraction))
+        excess = values[values > tail_start] - tail_start
+        tail_scale = float(excess.mean()) if len(excess) else 1e-6
+        levels = np.linspace(0.0, 1.0 - tail_fraction, 513)
+        return cls(
+            quantiles=np.quantile(values, levels),
+            levels=levels,
+            tail_start=tail_start,
+            tail_fraction=tail_fraction,
+            tail_scale=max(tail_scale, 1e-6),
+            pairs=len(values),
+        )
+
+    def p_value(self, cosines: np.ndarray | float) -> np.ndarray:
+        """P(impostor cosine >= c), elementwise."""
+        c = np.asarray(cosines, np.float64)
+        body = 1.0 - np.interp(c, self.quantiles, self.levels, left=0.0)
+        excess = np.maximum(c - self.tail_start, 0.0)  # the tail only applies above its start
+        tail = self.tail_fraction * np.exp(-excess / self.tail_scale)
+        return np.where(c >= self.tail_start, np.minimum(tail, self.tail_fraction), body)
+
+    def score(self, cosines: np.ndarray | float) -> np.ndarray:
+        """``-log10 p_value`` (0 or more): higher is a rarer impostor similarity.
+
+        Computed in log space in the tail, so it keeps growing (and ordering matches)
+        beyond any sampled impostor instead of saturating.
+        """
+        c = np.asarray(cosines, np.float64)
+        body = -np.log10(np.maximum(self.p_value(c), 1e-300))
+        tail = -np.log10(self.tail_fraction) + (c - self.tail_start) / (
+            self.tail_scale * np.log(10.0)
+        )
+        return np.maximum(np.where(c >= self.tail_start, tail, body), 0.0)
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {
+            "quantiles": self.quantiles,
+            "levels": self.levels,
+            "tail": np.array([self.tail_start, self.tail_fraction, self.tail_scale, self.pairs]),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray]) -> ImpostorModel:
+        tail = np.asarray(state["tail"], np.float64)
+        return cls(
+            quantiles=np.asarray(state["quantiles"], np.float64),
+            levels=np.asarray(state["levels"], np.float64),
+            tail_start=float(tail[0]),
+            tail_fraction=float(tail[1]),
+            tail_scale=float(tail[2]),
+            pairs=int(tail[3]),
+        )

@@ -1,0 +1,172 @@
+"""Branch whitening: centre, project on the leading principal axes, scale each axis.
+
+Fitted without labels on an atlas's stored vectors of one branch (D or R). Each kept axis i
+with eigenvalue ``l_i`` is divided by ``sqrt(l_i + s * mean(l))``: strong axes (``l_i`` well
+above the mean) come out with unit variance, weak ones are not blown up (their variance stays
+about ``l_i / (s * mean(l))``). ``s`` is the shrinkage; ``s = 0`` is plain PCA-whitening,
+which on a few hundred frames amplifies the noisy tail of the spectrum.
+
+The number of kept axes is capped by the data as well as by the stored size: at most
+``dims_fraction * n`` for ``n`` fitting vectors, because sample eigenvalues beyond that are
+mostly noise. With ``whiten=False`` the axes are kept unscaled (PCA reduction only: the
+"whitening off" ablation). Output rows are L2-normalised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from service.ml.aggregation import l2_normalize
+
+EXACT_LIMIT = 2048  # above this (on the smaller side) the randomised SVD is used
+
+
+@dataclass(frozen=True)
+class WhiteningConfig:
+    """How one branch is reduced and whitened.
+
+    Attributes:
+        max_dims: the stored size (axes kept at most).
+        dims_fraction: axes kept at most per fitting vector.
+        shrinkage: ``s`` above (a multiple of the mean eigenvalue added to every eigenvalue).
+        whiten: scale the axes (True) or only project on them (False).
+    """
+
+    max_dims: int = 256
+    dims_fraction: float = 0.5
+    shrinkage: float = 1.0
+    whiten: bool = True
+
+    def __post_init__(self) -> None:
+        if self.max_dims < 1:
+            raise ValueError(f"max_dims must be at least 1, got {self.max_dims}")
+        if not 0.0 < self.dims_fraction <= 1.0:
+            raise ValueError(f"dims_fraction must lie in (0, 1], got {self.dims_fraction}")
+        if self.shrinkage < 0.0:
+            raise ValueError(f"shrinkage must be non-negative, got {self.shrinkage}")
+
+    def kept_dims(self, n: int, dim: int) -> int:
+        """Axes kept for ``n`` fitting vectors of ``dim`` coordinates (at least one)."""
+        return max(1, min(self.max_dims, int(self.dims_fraction * n), dim, n - 1))
+
+
+@dataclass
+class Whitening:
+    """A fitted branch transform: ``y = normalize(((x - mean) @ axes) * scale)``.
+
+    Attributes:
+        mean: ``dim`` centre of the fitting vectors.
+        axes: ``dim x kept`` orthonormal principal axes, strongest first.
+        eigenvalues: ``kept`` variances along the axes.
+        scale: ``kept`` multipliers (``1 / sqrt(l + s * mean(l))``, or ones without whitening).
+    """
+
+    mean: np.ndarray
+    axes: np.ndarray
+    eigenvalues: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def input_dim(self) -> int:
+        return int(self.axes.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.axes.shape[1])
+
+    @classmethod
+    def fit(cls, vectors: np.ndarray, config: WhiteningConfig, *, seed: int = 0) -> Whitening:
+        """Fit on ``n x dim`` vectors (``n >= 2``).
+
+        Small problems are solved exactly (eigen-decomposition on the smaller side); large
+        ones by a randomised SVD of the kept axes only, which is what keeps an 8,192-d VLAD
+        of tens of thousands of frames within seconds.
+        """
+        x = np.asarray(vectors, np.float32)
+        n, dim = x.shape
+        if n < 2:
+            raise ValueError(f"whitening needs at least 2 vectors, got {n}")
+        mean = x.astype(np.float64).mean(0)
+        centred = x - mean.astype(np.float32)
+        total_variance = float((centred.astype(np.float64) ** 2).sum()) / (n - 1)
+        if total_variance <= 0.0:
+            raise ValueError("whitening needs vectors that are not all equal")
+        kept = config.kept_dims(n, dim)
+        if min(n, dim) <= EXACT_LIMIT:
+            values, axes_all = _exact_axes(centred.astype(np.float64))
+            rank = int((values > values[0] * 1e-9).sum())
+        else:
+            values, axes_all = _randomised_axes(centred, kept, seed)
+            rank = min(n - 1, dim)
+        eigenvalues_all = values / (n - 1)
+        kept = min(kept, rank, len(values))
+        eigenvalues = eigenvalues_all[:kept]
+        mean_eigenvalue = total_variance / rank
+        if config.whiten:
+            scale = 1.0 / np.sqrt(eigenvalues + config.shrinkage * mean_eigenvalue)
+        else:
+            scale = np.ones(kept)
+        return cls(
+            mean=mean.astype(np.float32),
+            axes=np.ascontiguousarray(axes_all[:, :kept], np.float32),
+            eigenvalues=eigenvalues.astype(np.float32),
+            scale=scale.astype(np.float32),
+        )
+
+    def project(self, vectors: np.ndarray) -> np.ndarray:
+        """``n x dim`` -> ``n x kept`` reduced, scaled, unscaled-norm coordinates."""
+        return ((np.asarray(vectors, np.float32) - self.mean) @ self.axes) * self.scale
+
+    def transform(self, vectors: np.ndarray) -> np.ndarray:
+        """``n x dim`` -> ``n x kept`` L2-normalised whitened vectors."""
+        return l2_normalize(self.project(vectors))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {
+            "mean": self.mean,
+            "axes": self.axes,
+            "eigenvalues": self.eigenvalues,
+            "scale": self.scale,
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray]) -> Whitening:
+        return cls(
+            mean=np.asarray(state["mean"], np.float32),
+            axes=np.asarray(state["axes"], np.float32),
+            eigenvalues=np.asarray(state["eigenvalues"], np.float32),
+            scale=np.asarray(state["scale"], np.float32),
+        )
+
+
+def _exact_axes(centred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared singular values (descending) and right singular vectors of ``centred``."""
+    n, dim = centred.shape
+    if n < dim:  # eigenvectors of the n x n Gram matrix, mapped back
+        values, left = np.linalg.eigh(centred @ centred.T)
+        order = np.argsort(values)[::-1]
+        values, left = np.clip(values[order], 0.0, None), left[:, order]
+        positive = values > values[0] * 1e-9
+        axes = centred.T @ left[:, positive] / np.sqrt(values[positive])
+        return values[positive], axes
+    values, axes = np.linalg.eigh(centred.T @ centred)
+    order = np.argsort(values)[::-1]
+    return np.clip(values[order], 0.0, None), axes[:, order]
+
+
+def _randomised_axes(centred: np.ndarray, kept: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``kept`` leading squared singular values and right singular vectors (Halko et al.)."""
+    generator = torch.Generator().manual_seed(seed)
+    matrix = torch.from_numpy(np.ascontiguousarray(centred))
+    sketch = min(kept + 16, *matrix.shape)
+    omega = torch.randn(matrix.shape[1], sketch, generator=generator)
+    basis, _ = torch.linalg.qr(matrix @ omega)
+    for _ in range(2):  # power iterations sharpen a slowly decaying spectrum
+        basis, _ = torch.linalg.qr(matrix.T @ basis)
+        basis, _ = torch.linalg.qr(matrix @ basis)
+    _, singular, vh = torch.linalg.svd(basis.T @ matrix, full_matrices=False)
+    values = (singular.double() ** 2).numpy()[:kept]
+    return values, vh[:kept].T.numpy()

@@ -57,6 +57,25 @@ class Settings(BaseSettings):
     exclude_recent_seconds: float = Field(
         30.0, ge=0.0, description="Nor do its frames taken within T seconds of the query."
     )
+    sequence_length: int = Field(
+        10,
+        ge=0,
+        le=50,
+        description="Default frames of a robot's sequence scored with each query/observe that "
+        "names the robot (SeqSLAM-like; 0: off). A request's sequence_length overrides it.",
+    )
+    sequence_max_gap_seconds: float = Field(
+        10.0,
+        gt=0.0,
+        description="A robot's frames further apart in time than this start a new sequence.",
+    )
+    consistency_frames: int = Field(
+        3,
+        ge=1,
+        le=20,
+        description="Consecutive agreeing observations of a robot before a loop closure is "
+        "accepted (DBoW2's temporal consistency; 1: no check).",
+    )
     max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
     max_image_pixels: int = Field(40_000_000, ge=1024)
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")

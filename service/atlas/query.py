@@ -23,12 +23,20 @@ from service.atlas.results import (
     VerificationSummary,
     place_margin,
 )
+from service.atlas.sequences import (
+    SERVICE_SEQUENCE,
+    RobotContext,
+    RobotEvidence,
+    SequenceScorer,
+    single_frame_verdict,
+)
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics, Pose
+from service.ml.sequences import PlaceStatus
 from service.ml.verification import Verification, View, decide, rerank
 from service.storage import repository as repo
 from service.storage.feature_store import load_local_features
@@ -37,6 +45,7 @@ from service.storage.models import Atlas, Frame
 # Frames searched per query beyond k, so the margin finds the best other place even when the
 # top k all lie in the match's submap.
 MARGIN_POOL = 32
+SEQUENCE_MAX = 50  # longest sequence a request may ask for
 
 
 @dataclass(frozen=True)
@@ -47,6 +56,7 @@ class Found:
     frames: dict[int, Frame]
     names: dict[int, str]
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
+    evidence: RobotEvidence | None  # the robot's sequence and previous observations
 
 
 class AtlasQueries:
@@ -65,10 +75,24 @@ class AtlasQueries:
         self.states = states
         self.ingest = ingest
         self.verification = verification
+        self.sequences = SequenceScorer(settings)
 
     def check_k(self, k: int) -> None:
         if not 1 <= k <= self.settings.max_k:
             raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
+
+    def robot_context(
+        self, query_filter: QueryFilter, timestamp: float | None, sequence_length: int | None
+    ) -> RobotContext | None:
+        """The asking robot (the filter's) and its sequence length; None without a robot."""
+        length = self.settings.sequence_length if sequence_length is None else sequence_length
+        if not 0 <= length <= SEQUENCE_MAX:
+            raise InvalidInput(
+                f"sequence_length must be between 0 and {SEQUENCE_MAX}, got {length}"
+            )
+        if query_filter.robot_id is None:
+            return None
+        return RobotContext(query_filter.robot_id, timestamp, length)
 
     def _check_targets(
         self, session: Session, atlas_name: str, query_filter: QueryFilter, submap: str | None
@@ -87,15 +111,18 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
     ) -> QueryResult:
         """The frames of the atlas most similar to an image, verified, and the loop-closure
-        decision. The filter's robot is the robot asking (its recent frames never match)."""
+        decision. The filter's robot is the robot asking (its recent frames never match, and
+        they form the query's sequence)."""
         total_start = time.perf_counter()
         self.check_k(k)
+        robot = self.robot_context(query_filter, query_filter.timestamp, sequence_length)
         with self.sessions() as session:
             self._check_targets(session, atlas_name, query_filter, None)
         features, decode_ms = self.ingest.extract(image_bytes)
-        result = self._search(atlas_name, features, k, query_filter, intrinsics)
+        result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
         return with_extraction_timings(result, features, decode_ms, total_start)
 
     def observe(
@@ -110,6 +137,7 @@ class AtlasQueries:
         pose: Pose | None = None,
         intrinsics: Intrinsics | None = None,
         k: int = 5,
+        sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
         """Online SLAM: query with a robot's new keyframe, then insert it, in one call.
 
@@ -118,14 +146,90 @@ class AtlasQueries:
         writes nothing.
         """
         total_start = time.perf_counter()
+        robot = self._check_observation(
+            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
+        )
+        features, decode_ms = self.ingest.extract(image_bytes)
+        result, frame = self._observe(
+            atlas_name,
+            submap_name,
+            robot_id,
+            features,
+            query_filter,
+            timestamp,
+            k,
+            robot,
+            pose,
+            intrinsics,
+        )
+        return with_extraction_timings(result, features, decode_ms, total_start), frame
+
+    def observe_features(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        query_filter: QueryFilter,
+        timestamp: float | None = None,
+        k: int = 5,
+        sequence_length: int | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """:meth:`observe` with already extracted features (a replay, an on-board extractor)."""
+        robot = self._check_observation(
+            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
+        )
+        return self._observe(
+            atlas_name,
+            submap_name,
+            robot_id,
+            features,
+            query_filter,
+            timestamp,
+            k,
+            robot,
+            None,
+            None,
+        )
+
+    def _check_observation(
+        self,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        timestamp: float | None,
+        k: int,
+        query_filter: QueryFilter,
+        sequence_length: int | None,
+    ) -> RobotContext:
+        """Everything an observation names, checked before any CNN runs."""
         validate_frame_fields(robot_id, timestamp)
         self.check_k(k)
         if query_filter.robot_id != robot_id:
             raise InvalidInput("an observation's filter must be for the observing robot")
+        robot = self.robot_context(query_filter, timestamp, sequence_length)
         with self.sessions() as session:
             self._check_targets(session, atlas_name, query_filter, submap_name)
-        features, decode_ms = self.ingest.extract(image_bytes)
-        result = self._search(atlas_name, features, k, query_filter, intrinsics)
+        assert robot is not None  # the filter names the observing robot
+        return robot
+
+    def _observe(
+        self,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        query_filter: QueryFilter,
+        timestamp: float | None,
+        k: int,
+        robot: RobotContext,
+        pose: Pose | None,
+        intrinsics: Intrinsics | None,
+    ) -> tuple[QueryResult, Frame]:
+        """Query, then insert in one transaction: the frame never matches itself, and a
+        failure writes nothing."""
+        result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
         frame = self.ingest.store(
             atlas_name=atlas_name,
             submap_name=submap_name,
@@ -135,7 +239,7 @@ class AtlasQueries:
             pose=pose,
             intrinsics=intrinsics,
         )
-        return with_extraction_timings(result, features, decode_ms, total_start), frame
+        return result, frame
 
     def query_features(
         self,
@@ -145,11 +249,14 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
+        timestamp: float | None = None,
     ) -> QueryResult:
         """Search with already extracted features and verify the best candidates; timings
         cover the heads, the search and the verification."""
         self.check_k(k)
-        return self._search(atlas_name, features, k, query_filter, intrinsics)
+        robot = self.robot_context(query_filter, timestamp, sequence_length)
+        return self._search(atlas_name, features, k, query_filter, intrinsics, robot)
 
     def _search(
         self,
@@ -158,6 +265,7 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None,
+        robot: RobotContext | None = None,
     ) -> QueryResult:
         with self.sessions() as session:
             atlas = self.ingest.checked_atlas(session, atlas_name)
@@ -170,7 +278,7 @@ class AtlasQueries:
                 torch.from_numpy(features.global_vector[None]),
             )
             timings["heads"] = (time.perf_counter() - start) * 1000.0
-            found = self._find(session, atlas, state, embedding, k, query_filter, timings)
+            found = self._find(session, atlas, state, embedding, k, query_filter, timings, robot)
         config = self.verification.config
         candidates = found.candidates
         verifications: dict[int, Verification] = {}
@@ -205,17 +313,23 @@ class AtlasQueries:
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         enabled = self.verification.enabled
+        loop_closure = decide(
+            match.similarity if match else None,
+            verifications.get(match.frame_id) if match else None,
+            threshold=threshold,
+            verify=enabled,
+        )
+        verdict = (
+            found.evidence.verdict(match.frame_id if match else None, loop_closure)
+            if found.evidence is not None
+            else single_frame_verdict(loop_closure)
+        )
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
             match=match,
             candidates=candidates[:k],
-            loop_closure=decide(
-                match.similarity if match else None,
-                verifications.get(match.frame_id) if match else None,
-                threshold=threshold,
-                verify=enabled,
-            ),
+            loop_closure=loop_closure,
             threshold=threshold,
             predicted_submap=guess,
             keypoints=features.local.count,
@@ -227,6 +341,10 @@ class AtlasQueries:
                 verified_candidates=len(verifications),
                 min_inliers=config.min_inliers if enabled else None,
             ),
+            status=verdict.status.value,
+            new_place=verdict.status == PlaceStatus.NEW_PLACE,
+            consistent=verdict.consistent,
+            sequence=found.evidence.sequence if found.evidence is not None else None,
         )
 
     def _find(
@@ -238,19 +356,26 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         timings: dict[str, float],
+        robot: RobotContext | None,
     ) -> Found:
         """Resolve the filter, search the index, read the hits' frames and the stored
-        keypoints of those to verify, all in the request's one search session."""
+        keypoints of those to verify, and the robot's sequence evidence, all in the request's
+        one search session."""
         selection = resolve(session, atlas, query_filter)
         top = self.verification.config.top
+        pool = max(k, top, MARGIN_POOL)
+        if robot is not None and robot.sequence_length:
+            pool = max(pool, SERVICE_SEQUENCE.seeds)
         start = time.perf_counter()
         hits = state.index.search(
-            embedding,
-            max(k, top, MARGIN_POOL),
-            include=selection.include,
-            exclude=selection.exclude,
+            embedding, pool, include=selection.include, exclude=selection.exclude
         )
         timings["search"] = (time.perf_counter() - start) * 1000.0
+        evidence = None
+        if robot is not None:
+            start = time.perf_counter()
+            evidence = self.sequences.answer(session, state, robot, embedding, hits, selection)
+            timings["sequence"] = (time.perf_counter() - start) * 1000.0
         names = repo.submap_names(session, atlas_id=atlas.id)
         frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])
         candidates = [
@@ -261,7 +386,7 @@ class AtlasQueries:
         stored: dict[int, LocalFeatures] = {}
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
-        return Found(candidates, frames, names, stored)
+        return Found(candidates, frames, names, stored, evidence)
 
 
 def with_extraction_timings(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from service.atlas.sequences import SequenceAnswer
 from service.ml.verification import RelativePose
 
 
@@ -52,6 +53,12 @@ class QueryResult:
     verification: VerificationSummary = field(
         default_factory=lambda: VerificationSummary(enabled=False)
     )
+    # "loop" (accepted: consistent over the robot's last observations), "candidate" (passes,
+    # not yet consistent) or "new_place" (nothing passes)
+    status: str = "new_place"
+    new_place: bool = True  # status == "new_place", a field of its own
+    consistent: int = 0  # consecutive agreeing observations, this one included
+    sequence: SequenceAnswer | None = None
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

@@ -9,7 +9,8 @@ Methods, all on the same reference/query split and ground truth:
   global only (alpha = 0; the backbone is the same for every extractor, so it is listed once);
 - the classical baselines (bag of ORB words; SeqSLAM's single-frame SAD);
 - with ``sequence``: ``<method>+seqL`` rows scoring queries in dataset order through the
-  service's sequence code (LoopNet per extractor, global only), and full SeqSLAM at the same L.
+  service's sequence code (LoopNet per extractor and global only, each on the calibrated and
+  the uncalibrated vectors), and full SeqSLAM at the same L.
 """
 
 from __future__ import annotations
@@ -401,6 +402,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     first_pass: PassResult | None = None
     first_keypoints: KeypointCache | None = None
     passes: list[PassResult] = []
+    calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -436,6 +438,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             alphas=config.alphas,
             k=config.k,
             with_global_only=first_pass is None,
+            vectors=calibrated_vectors,
         )
         uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
@@ -482,14 +485,21 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         stages.update(verification_stages)
     if config.sequence:
         bases = []
+        rows = {m.name: m for m in methods}
         for result in passes:
-            service_row = next(
-                m for m in methods if m.name == f"loopnet-{result.preset.local.name}"
+            extractor = result.preset.local.name
+            calibrated_row = f"loopnet-{extractor}"
+            bases.append((rows[calibrated_row], *calibrated_vectors[calibrated_row]))
+            bases.append(
+                (
+                    rows[f"{calibrated_row}-uncalibrated"],
+                    *_unit_embeddings(result, result.preset.alpha),
+                )
             )
-            bases.append((service_row, *_unit_embeddings(result, result.preset.alpha)))
-        global_row = next((m for m in methods if m.name == "global-only"), None)
-        if global_row is not None:
-            bases.append((global_row, *_unit_embeddings(first_pass, 0.0)))
+        if "global-only" in calibrated_vectors:
+            bases.append((rows["global-only"], *calibrated_vectors["global-only"]))
+        if "global-only-uncalibrated" in rows:
+            bases.append((rows["global-only-uncalibrated"], *_unit_embeddings(first_pass, 0.0)))
         methods += sequence_methods(
             bases,
             dataset,

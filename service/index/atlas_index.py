@@ -102,6 +102,36 @@ class AtlasIndex:
         # While a rebuild runs: the adds and removals to replay on the new index.
         self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
         self._rebuilder: threading.Thread | None = None
+        # Every add and removal, numbered: caches of the held vectors follow them cheaply.
+        self._journal: list[tuple[int, np.ndarray]] = []
+        self._journal_start = 0  # generation of the journal's first entry
+
+    JOURNAL_KEPT = 1024
+
+    @property
+    def generation(self) -> int:
+        """How many adds and removals this index object has seen."""
+        return self._journal_start + len(self._journal)
+
+    def changes_since(self, generation: int) -> list[tuple[int, np.ndarray]] | None:
+        """The adds (+1) and removals (-1) of frame ids after ``generation``, oldest first;
+        None when the journal no longer reaches back that far."""
+        with self._lock:
+            if generation < self._journal_start or generation > self.generation:
+                return None
+            return list(self._journal[generation - self._journal_start :])
+
+    def _note(self, sign: int, ids: np.ndarray) -> None:
+        self._journal.append((sign, ids.copy()))
+        if len(self._journal) > self.JOURNAL_KEPT:
+            drop = len(self._journal) - self.JOURNAL_KEPT // 2
+            self._journal = self._journal[drop:]
+            self._journal_start += drop
+
+    def vectors(self, ids: np.ndarray) -> np.ndarray:
+        """The stored vectors of held frame ``ids`` (decoded codes for the inverted file)."""
+        with self._lock:
+            return self._reconstruct(np.asarray(ids, dtype=np.int64))
 
     @property
     def size(self) -> int:
@@ -155,6 +185,7 @@ class AtlasIndex:
             self._regrow(new_ids, vectors[new])
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
+            self._note(1, new_ids)
             return int(new.sum())
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
@@ -170,6 +201,7 @@ class AtlasIndex:
             removed = int(self._index.remove_ids(ids))
             for i in ids:
                 self._robot_of.pop(int(i), None)
+            self._note(-1, ids)
             if self._log is not None:
                 self._log.append(("remove", ids, None))
             elif self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:

@@ -35,6 +35,9 @@ class SequenceSettings:
     neighbourhood: reference frames either side of each vote's landing place also voted for.
     candidates: places scored exactly: those with the most votes (summed z-scores of the
         seeds that land on them along one speed: a sparse pre-score of the same sum).
+    seed_frames: query frames, newest first, whose seeds vote (0: all). The service uses 1:
+        the newest frame's own search hits, so no past frame is searched again and two
+        replicas at one revision propose the same candidates.
     contrast_window: 0: each similarity is standardised against the whole map (z-score of
         the query frame's row); w > 0: against the w + 1 reference frames around the aligned
         one along its trajectory (SeqSLAM's local contrast enhancement; OpenSeqSLAM uses 10).
@@ -46,6 +49,7 @@ class SequenceSettings:
     seeds: int = 50
     neighbourhood: int = 1
     candidates: int = 64
+    seed_frames: int = 0
     contrast_window: int = 0
 
     def __post_init__(self) -> None:
@@ -57,9 +61,13 @@ class SequenceSettings:
             self.seeds < 1
             or self.neighbourhood < 0
             or self.candidates < 1
-            or (self.contrast_window < 0)
+            or self.contrast_window < 0
+            or self.seed_frames < 0
         ):
-            raise ValueError("seeds and candidates must be >= 1 and neighbourhood >= 0")
+            raise ValueError(
+                "seeds and candidates must be >= 1; neighbourhood, seed_frames and "
+                "contrast_window >= 0"
+            )
 
     @property
     def signed_speeds(self) -> np.ndarray:
@@ -276,7 +284,9 @@ def score_candidates(
     length = (aligned >= 0).sum(axis=2)
     score = z_aligned.sum(axis=2) / np.sqrt(np.maximum(length, 1))
     score = np.where(aligned[:, :, 0] >= 0, score, -np.inf)  # the newest frame must align
-    best_speed = np.argmax(score, axis=1)
+    # equal scores (short sequences align alike at nearby speeds): the speed nearest 1 wins
+    preference = np.argsort(np.abs(np.log(np.abs(speeds))), kind="stable")
+    best_speed = preference[np.argmax(score[:, preference], axis=1)]
     best = score[np.arange(len(candidates)), best_speed]
     order = np.argsort(-best, kind="stable")
     if top is not None:
@@ -338,6 +348,9 @@ def match_sequence(
         raise ValueError(f"{len(queries)} query frames but {len(seeds)} seed lists")
     stats = moments.row_stats(queries) if row_stats is None else row_stats
     seed_lists = [np.asarray(f, dtype=np.int64)[: settings.seeds] for f in seeds]
+    if settings.seed_frames:
+        older = max(len(seed_lists) - settings.seed_frames, 0)
+        seed_lists = [np.zeros(0, np.int64)] * older + seed_lists[older:]
     sizes = [len(f) for f in seed_lists]
     seed_scores: list[np.ndarray] = []
     if sum(sizes):

@@ -151,6 +151,13 @@ def add_eval_parser(commands: argparse._SubParsersAction) -> None:  # type: igno
         default=0,
         help="sequence rows: local contrast window in frames (0: whole-map z-scores)",
     )
+    ev.add_argument(
+        "--sequence-seed-frames",
+        type=int,
+        default=1,
+        help="sequence rows: newest query frames whose best matches propose candidates "
+        "(1: the service's; 0: all)",
+    )
     ev.set_defaults(func=cmd_eval)
 
 
@@ -250,6 +257,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         query_stride=args.query_stride,
         sequence=_csv_list(int, args.sequence),
         sequence_contrast=args.sequence_contrast,
+        sequence_seed_frames=args.sequence_seed_frames,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     result = run_evaluation(config)

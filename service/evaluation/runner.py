@@ -90,6 +90,8 @@ class EvalConfig:
         query_stride: keep every n-th query only (bounded runs on long datasets).
         sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
         sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
+        sequence_seed_frames: newest query frames whose best matches propose candidates (the
+            service's 1: its own search hits; 0: every frame's).
     """
 
     dataset: Path
@@ -119,6 +121,7 @@ class EvalConfig:
     query_stride: int = 1
     sequence: tuple[int, ...] = ()
     sequence_contrast: int = 0
+    sequence_seed_frames: int = 1
 
 
 @dataclass
@@ -506,7 +509,10 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             submap_of,
             config.sequence,
             config.k,
-            SequenceSettings(contrast_window=config.sequence_contrast),
+            SequenceSettings(
+                contrast_window=config.sequence_contrast,
+                seed_frames=config.sequence_seed_frames,
+            ),
         )
     for name in config.baselines:
         method, baseline_stages, similarity = _baseline_method(

@@ -117,14 +117,18 @@ def sequence_methods(
             ranking, used, ms = sequence_ranking(
                 reference, query, trajectories, query_starts, chosen, k
             )
-            contrast = (
-                f"-lc{chosen.contrast_window}" if chosen.contrast_window else "",
-                f", local contrast {chosen.contrast_window}" if chosen.contrast_window else "",
-            )
+            suffix, words = "", ""
+            if chosen.contrast_window:
+                suffix += f"-lc{chosen.contrast_window}"
+                words += f", local contrast {chosen.contrast_window}"
+            if chosen.seed_frames != 1:
+                seeded = chosen.seed_frames or "all"
+                suffix += f"-seeds{seeded}"
+                words += f", matches of {seeded} frames propose"
             rows.append(
                 evaluate_ranking(
-                    f"{method.name}+seq{length}{contrast[0]}",
-                    f"{method.label} + sequence L={length}{contrast[1]}",
+                    f"{method.name}+seq{length}{suffix}",
+                    f"{method.label} + sequence L={length}{words}",
                     "sequence",
                     ranking,
                     dataset,
@@ -138,6 +142,7 @@ def sequence_methods(
                             "seeds": chosen.seeds,
                             "neighbourhood": chosen.neighbourhood,
                             "candidates": chosen.candidates,
+                            "seed_frames": chosen.seed_frames,
                             "contrast_window": chosen.contrast_window,
                         },
                         "mean_length_used": float(used.mean()) if len(used) else 0.0,

@@ -17,6 +17,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from service.atlas.state import LoadedAtlas
+from service.atlas.trajectory_growth import GrowingTrajectories
 from service.ml.sequences import MapMoments, Trajectories
 from service.storage import repository as repo
 
@@ -42,7 +43,11 @@ class SequenceMap:
         self.timestamps: list[float | None] = []
         self.position: dict[int, int] = {}
         self.moments = MapMoments(dim)
-        self.trajectories = Trajectories.build([])
+        self.growth = GrowingTrajectories(max_gap_seconds)
+
+    @property
+    def trajectories(self) -> Trajectories:
+        return self.growth.trajectories
 
     @property
     def ids(self) -> np.ndarray:
@@ -68,12 +73,14 @@ class SequenceMap:
         for offset, row in enumerate(rows):
             self.position[row[0]] = self.count + offset
         self.count = needed
+        in_order = len(rows) < 64 and all(self.growth.append(row[1], row[2]) for row in rows)
         self.robots += [row[1] for row in rows]
         self.timestamps += [row[2] for row in rows]
         self.moments.add(vectors)
-        self.trajectories = Trajectories.build(
-            self.robots, self.timestamps, max_gap_seconds=self.max_gap_seconds
-        )
+        if not in_order:  # many at once, or a frame older than its robot's latest: rebuild
+            self.growth = GrowingTrajectories.build(
+                self.robots, self.timestamps, self.max_gap_seconds
+            )
 
     def positions(self, frame_ids: np.ndarray | list[int]) -> np.ndarray:
         """Positions of ``frame_ids`` (-1 for frames the map does not hold)."""
@@ -109,6 +116,11 @@ class SequenceMaps:
         """The atlas's map, current with its index, held (not changed) while in use."""
         with self._lock:
             yield self._current(session, state)
+
+    def refresh(self, session: Session, state: LoadedAtlas) -> None:
+        """Bring the atlas's map up to date now (the first use builds it)."""
+        with self._lock:
+            self._current(session, state)
 
     def _current(self, session: Session, state: LoadedAtlas) -> SequenceMap:
         cached = self._maps.get(state.atlas_id)

@@ -2,11 +2,12 @@
 robot's frames replayed in order; each frame asks about everything before it except its own
 recent frames, then joins the map.
 
-The application call is one function, :func:`observe`: today it runs the library code the
-service's observe path is to call (exact search, :mod:`service.ml.sequences`) on an in-memory
-map; when the service's observe reads sequences from the database, :func:`observe` is the one
-place to re-point at it. Features come from the evaluation's feature cache (the same files
-``loopnet eval`` writes), so no CNN runs twice.
+The application call is the service's own observe path
+(:func:`service.evaluation.online_service.service_observations`: search, sequence scoring from
+the database, insert); :func:`observe` keeps the same steps on an in-memory map (exact search,
+all frames' matches proposing candidates) for synthetic checks of the metrics. Features come
+from the evaluation's feature cache (the same files ``loopnet eval`` writes), so no CNN runs
+twice.
 
 Metrics: precision-recall of loop closures (a frame is a true positive when its answer is one of
 its ground-truth partners; recall divides by the frames that have a partner in the map), recall
@@ -27,6 +28,7 @@ from tqdm import tqdm
 from service.evaluation.datasets import Dataset, ReferenceFrame
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.metrics import precision_recall, summary
+from service.evaluation.online_service import service_observations
 from service.evaluation.service_pass import CachedFeatures, cache_path
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
@@ -100,12 +102,7 @@ class Observation:
 
 
 def observe(state: OnlineMap, frame: int) -> Observation:
-    """The application call for one frame: ask with the robot's recent sequence, then insert.
-
-    The one adapter between this harness and the application: re-point it at the service's
-    observe path (robot = the trajectory, timestamps = frame order) once that reads recent
-    frames from the database.
-    """
+    """One frame on the in-memory map: ask with the robot's recent sequence, then insert."""
     start = time.perf_counter()
     state.admit(max(frame - state.settings.exclude_recent, 0))
     if state.in_map == 0:
@@ -178,11 +175,18 @@ def trajectory_vectors(
     return cached
 
 
-def replay(trajectory: Trajectory, vectors: np.ndarray, settings: OnlineSettings) -> dict[str, Any]:
-    """Replay the trajectory through :func:`observe`; metrics of its answers."""
+def replay(
+    trajectory: Trajectory,
+    vectors: np.ndarray,
+    settings: OnlineSettings,
+    observations: list[Observation] | None = None,
+) -> dict[str, Any]:
+    """Metrics of the answers to the replayed trajectory: ``observations`` (the service's),
+    or :func:`observe` on the in-memory map when None."""
     trajectories = Trajectories.single(len(vectors), trajectory.starts)
-    state = OnlineMap(vectors, trajectories, settings, MapMoments(vectors.shape[1]))
-    observations = [observe(state, t) for t in range(len(vectors))]
+    if observations is None:
+        state = OnlineMap(vectors, trajectories, settings, MapMoments(vectors.shape[1]))
+        observations = [observe(state, t) for t in range(len(vectors))]
     references = np.array([o.reference for o in observations], np.int64)
     scores = np.array([o.score for o in observations], np.float64)
     correct = np.array(
@@ -299,13 +303,25 @@ def run_online(config: OnlineConfig) -> dict[str, Any]:
                 exclude_recent=config.exclude_recent,
                 consistency=ConsistencySettings(required=config.consistency),
             )
-            rows.append({"method": name, **replay(config.trajectory, vectors, settings)})
+            answers = service_observations(
+                config.trajectory,
+                features,
+                pipeline,
+                alpha=alpha,
+                length=length,
+                exclude_recent=config.exclude_recent,
+                consistency=config.consistency,
+            )
+            observations = [Observation(*answer) for answer in answers]
+            rows.append(
+                {"method": name, **replay(config.trajectory, vectors, settings, observations)}
+            )
     report = {
         "command": config.command,
         "trajectory": config.trajectory.name,
         "ground_truth": config.trajectory.ground_truth,
         "features": "; ".join(features_text),
-        "adapter": "service.evaluation.online.observe (library code, in-memory map)",
+        "adapter": "AtlasService.observe_features (the service's observe path, SQLite)",
         "rows": rows,
     }
     write_report(report, config.output)

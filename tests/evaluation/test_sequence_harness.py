@@ -16,7 +16,14 @@ from service.evaluation.loop_ground_truth import (
     trajectory_from_matrix,
     trajectory_from_traversals,
 )
-from service.evaluation.online import OnlineSettings, replay, trajectory_vectors, unit_embeddings
+from service.evaluation.online import (
+    Observation,
+    OnlineSettings,
+    replay,
+    trajectory_vectors,
+    unit_embeddings,
+)
+from service.evaluation.online_service import service_observations
 from service.evaluation.sequence_pass import sequence_ranking
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import resolve_preset
@@ -149,11 +156,24 @@ def test_online_replay_on_real_frames_finds_the_hand_checked_loops(tmp_path) -> 
     features = trajectory_vectors(trajectory, pipeline, tmp_path)
     assert list(tmp_path.iterdir())  # cached for the next run
     vectors = unit_embeddings(features, alpha=0.7)
+
     # the robot's own last 10 frames (its whole day run) never answer: day frame i may close
     # a loop with night frames < i, so with frame i - 1 (its right neighbour) only
-    settings = OnlineSettings(length=3, exclude_recent=10)
-    sequence = replay(trajectory, vectors, settings)
-    single = replay(trajectory, vectors, OnlineSettings(length=1, exclude_recent=10))
+    # through the service's observe path (database, index, sequence code)
+    def through_service(length: int) -> dict:  # type: ignore[type-arg]
+        settings = OnlineSettings(length=length, exclude_recent=10)
+        answers = service_observations(
+            trajectory,
+            features,
+            pipeline,
+            alpha=0.7,
+            length=length,
+            exclude_recent=10,
+            consistency=3,
+        )
+        return replay(trajectory, vectors, settings, [Observation(*a) for a in answers])
+
+    sequence, single = through_service(3), through_service(1)
     assert sequence["answerable"] == single["answerable"] == 9
     assert sequence["decisions"]["k=1"]["best_match_right"] >= 7 / 9
     assert single["decisions"]["k=1"]["best_match_right"] < 7 / 9

@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             args.dim, policy=IndexPolicy(background=False, train_per_list=16, kmeans_iterations=5)
         )
         ids = np.arange(1, args.frames + 1, dtype=np.int64)
-        index.add(ids, vectors, [r["robot_id"] for r in rows])
+        index.add(ids, vectors, [str(r["robot_id"]) for r in rows])
         build_s = time.perf_counter() - start
         state = LoadedAtlas(1, 1, None, index)  # type: ignore[arg-type]  # heads are not used
         settings = Settings(data_dir=Path(tmp), sequence_max_gap_seconds=10.0)

@@ -91,16 +91,26 @@ class SequenceMap:
 
 
 def _rows_and_vectors(
-    session: Session, state: LoadedAtlas, frame_ids: list[int] | None
+    session: Session, state: LoadedAtlas
 ) -> tuple[list[tuple[int, str, float | None]], np.ndarray]:
-    """The frame rows the index holds (all, or ``frame_ids``: frames it has just added) and
-    their index vectors."""
-    rows = repo.frame_times(session, atlas_id=state.atlas_id, frame_ids=frame_ids)
-    if frame_ids is None:
-        held = set(state.index.ids().tolist())
-        rows = [row for row in rows if row[0] in held]
+    """Every frame row the index holds and its index vector."""
+    rows = repo.frame_times(session, atlas_id=state.atlas_id)
+    held = set(state.index.ids().tolist())
+    rows = [row for row in rows if row[0] in held]
     ids = np.array([row[0] for row in rows], dtype=np.int64)
     return rows, state.index.vectors(ids).astype(np.float32)
+
+
+def _added_rows_and_vectors(
+    session: Session, state: LoadedAtlas, ids: np.ndarray, added: np.ndarray
+) -> tuple[list[tuple[int, str, float | None]], np.ndarray]:
+    """The rows of frames the index has just added and the vectors it holds for them."""
+    rows = repo.frame_times(session, atlas_id=state.atlas_id, frame_ids=ids.tolist())
+    found = {row[0] for row in rows}
+    keep = np.array([int(i) in found for i in ids], dtype=bool)
+    vectors = state.index.stored_like(ids[keep], added[keep])
+    order = np.argsort(ids[keep], kind="stable")  # rows come in id order
+    return rows, vectors[order]
 
 
 class SequenceMaps:
@@ -129,16 +139,15 @@ class SequenceMaps:
             if cached.generation == generation:
                 return cached
             changes = state.index.changes_since(cached.generation)
-            if changes is not None and all(sign > 0 for sign, _ in changes):
-                added = {int(i) for _, ids in changes for i in ids}
-                cached.append(
-                    *_rows_and_vectors(
-                        session, state, sorted({i for i in added if i not in cached.position})
-                    )
-                )
+            if changes is not None and all(sign > 0 for sign, _, _ in changes):
+                ids = np.concatenate([ids for _, ids, _ in changes])
+                added = np.concatenate([v for _, _, v in changes if v is not None])
+                new = np.array([int(i) not in cached.position for i in ids], dtype=bool)
+                if new.any():
+                    cached.append(*_added_rows_and_vectors(session, state, ids[new], added[new]))
                 cached.generation = generation
                 return cached
         fresh = SequenceMap(id(state.index), generation, state.index.dim, self.max_gap_seconds)
-        fresh.append(*_rows_and_vectors(session, state, None))
+        fresh.append(*_rows_and_vectors(session, state))
         self._maps[state.atlas_id] = fresh
         return fresh

@@ -69,6 +69,14 @@ class Settings(BaseSettings):
         gt=0.0,
         description="A robot's frames further apart in time than this start a new sequence.",
     )
+    sequence_seed_frames: int = Field(
+        1,
+        ge=0,
+        le=50,
+        description="Frames of a robot's sequence, newest first, whose best matches propose "
+        "places to score (0: all). 1 uses the query's own search; each more frame costs one "
+        "index search per request.",
+    )
     consistency_frames: int = Field(
         3,
         ge=1,

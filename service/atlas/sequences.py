@@ -152,24 +152,41 @@ class SequenceScorer:
             eligible = _eligible(view, selection)
             sequence = None
             if robot.sequence_length > 0 and view.count:
-                sequence = self._score(view, newest, hits, previous_positions, eligible, robot)
+                sequence = self._score(
+                    state, view, newest, hits, previous_positions, eligible, selection, robot
+                )
             past = self._previous(state, view, previous_positions, selection)
             return RobotEvidence(sequence, past, view.position, view.trajectories, self.consistency)
 
     def _score(
         self,
+        state: LoadedAtlas,
         view: SequenceMap,
         newest: np.ndarray,
         hits: list[Hit],
         previous: np.ndarray,
         eligible: np.ndarray,
+        selection: Selection,
         robot: RobotContext,
     ) -> SequenceAnswer | None:
-        settings = replace(SERVICE_SEQUENCE, length=robot.sequence_length)
+        """The best place for the sequence; candidates come from the newest frame's hits and,
+        with ``sequence_seed_frames`` > 1 (0: all), from searches of earlier frames too."""
+        settings = replace(
+            SERVICE_SEQUENCE,
+            length=robot.sequence_length,
+            seed_frames=self.settings.sequence_seed_frames,
+        )
         previous = previous[-(settings.length - 1) :] if settings.length > 1 else previous[:0]
         queries = np.vstack([view.lookup(previous), newest[None].astype(np.float32)])
-        seeds = view.positions([h.frame_id for h in hits[: settings.seeds]])
-        seed_lists = [np.zeros(0, np.int64)] * len(previous) + [seeds[seeds >= 0]]
+        seed_lists = [np.zeros(0, np.int64)] * len(previous) + [
+            self._seeds(view, hits, settings.seeds)
+        ]
+        searched = len(previous) if not settings.seed_frames else settings.seed_frames - 1
+        for j in range(max(len(previous) - searched, 0), len(previous)):
+            found = state.index.search(
+                queries[j], settings.seeds, include=selection.include, exclude=selection.exclude
+            )
+            seed_lists[j] = self._seeds(view, found, settings.seeds)
         matches = match_sequence(
             queries,
             seed_lists,
@@ -190,6 +207,11 @@ class SequenceScorer:
             speed=float(best.speed),
             frame_id=int(view.ids[best.reference]),
         )
+
+    @staticmethod
+    def _seeds(view: SequenceMap, hits: list[Hit], count: int) -> np.ndarray:
+        positions = view.positions([h.frame_id for h in hits[:count]])
+        return positions[positions >= 0]
 
     def _previous(
         self,

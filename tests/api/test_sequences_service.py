@@ -60,9 +60,10 @@ def make_client(data_dir: Path, pipeline, **overrides: object) -> TestClient:  #
     return TestClient(create_app(settings, pipeline=pipeline))
 
 
-@pytest.fixture
-def app(data_dir: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
-    with make_client(data_dir, pipeline) as client:
+@pytest.fixture(params=[1, 0], ids=["newest-seeds", "all-seeds"])
+def app(data_dir: Path, pipeline, request) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
+    """The atlas, served with candidates from the newest frame's matches or every frame's."""
+    with make_client(data_dir, pipeline, sequence_seed_frames=request.param) as client:
         wait_ready(client)
         assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
         assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201

@@ -70,7 +70,11 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         index.add(ids, vectors, [str(r["robot_id"]) for r in rows])
         build_s = time.perf_counter() - start
         state = LoadedAtlas(1, 1, None, index)  # type: ignore[arg-type]  # heads are not used
-        settings = Settings(data_dir=Path(tmp), sequence_max_gap_seconds=10.0)
+        settings = Settings(
+            data_dir=Path(tmp),
+            sequence_max_gap_seconds=10.0,
+            sequence_seed_frames=args.seed_frames,
+        )
         scorer = SequenceScorer(settings)
         with sessions() as session:  # the first use builds the process's map (not timed)
             start = time.perf_counter()
@@ -144,6 +148,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "dim": args.dim,
         "robots": args.robots,
         "observations": args.observations,
+        "seed_frames": args.seed_frames,
         "index": index.describe(),
         "index_build_s": round(build_s, 1),
         "map_build_s": round(map_build_s, 2),
@@ -160,6 +165,9 @@ def main() -> None:
     parser.add_argument("--lengths", type=int, nargs="+", default=[5, 10])
     parser.add_argument("--observations", type=int, default=100)
     parser.add_argument("--noise", type=float, default=0.5)
+    parser.add_argument(
+        "--seed-frames", type=int, default=1, help="LOOPNET_SEQUENCE_SEED_FRAMES (0: all)"
+    )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     report = run(args)

@@ -9,8 +9,10 @@ the sequence there as the trajectory does.
 
 from __future__ import annotations
 
+import copy
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -45,13 +47,15 @@ def service_observations(
     index the service answered (-1: none), the score the sequence score (L > 1) or the cosine."""
     from service.runtime import Runtime
 
+    # the atlas's untrained heads fuse at the method's alpha (a copy: the CNNs are shared)
+    pipeline = copy.copy(pipeline)
+    pipeline.preset = replace(pipeline.preset, alpha=alpha)
     count = len(features.local)
     times = frame_times(trajectory, count)
     with tempfile.TemporaryDirectory(prefix="loopnet-online-") as data_dir:
         settings = Settings(
             data_dir=Path(data_dir),
             verify_top=0,
-            alpha=alpha,
             exclude_recent_frames=exclude_recent,
             exclude_recent_seconds=0.0,
             consistency_frames=consistency,

@@ -181,3 +181,24 @@ def test_sequence_length_is_checked(app: TestClient, pipeline) -> None:  # type:
         files={"features": ("f.npz", payload)},
     )
     assert response.status_code == 422
+
+
+def test_two_replicas_on_postgresql_answer_alike(
+    tmp_path: Path, postgres_url: str, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """The fleet setting: two API processes' apps on one PostgreSQL database, each with its
+    own data directory; one takes every write, both answer."""
+    fields = {"robot_id": "rover", "timestamp": "104", "sequence_length": "5"}
+    newest = ambiguous(24, DECOYS[4])
+    with make_client(tmp_path / "a", pipeline, database_url=postgres_url) as first:
+        wait_ready(first)
+        assert first.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert first.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        ids = [insert(first, pipeline, features(G[p]), "mapper", float(p)) for p in range(PLACES)]
+        query(first, pipeline, features(G[5]), **fields)  # its map grows frame by frame from here
+        drive(first, pipeline, [20, 21, 22, 23])
+        answer = query(first, pipeline, newest, **fields)["sequence"]
+        with make_client(tmp_path / "b", pipeline, database_url=postgres_url) as second:
+            wait_ready(second)
+            assert query(second, pipeline, newest, **fields)["sequence"] == answer
+    assert answer["frame_id"] == ids[24] and answer["length"] == 5

@@ -14,10 +14,13 @@ RUN pip install --no-cache-dir -e .
 # The data directory (indexes, model versions) is a volume every replica and worker shares;
 # pretrained weights are linked from /weights (a mounted copy of ../shared/weights) at start, or
 # downloaded on first use where there is network.
+# It listens beyond loopback, so API keys are always required (never the open `auto` start):
+# create the first key with `docker run ... loopnet keys create --role admin --name me`.
 ENV LOOPNET_DATA_DIR=/data \
     TORCH_HOME=/data/torch \
     LOOPNET_HOST=0.0.0.0 \
-    LOOPNET_PORT=8000
+    LOOPNET_PORT=8000 \
+    LOOPNET_AUTH=required
 VOLUME /data
 EXPOSE 8000
 CMD ["loopnet", "serve"]

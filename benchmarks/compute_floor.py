@@ -31,10 +31,12 @@ def count_flops(fn: Callable[[], object]) -> float:
     return float(counter.get_total_flops())
 
 
-def matmul_gflops(repeats: int = 3, size: int = MATMUL_SIZE) -> tuple[float, float]:
-    """fp32 GFLOP/s of a ``size``-square matmul with torch's current threads, per second of
+def matmul_gflops(
+    repeats: int = 3, size: int = MATMUL_SIZE, dtype: torch.dtype = torch.float32
+) -> tuple[float, float]:
+    """GFLOP/s of a ``size``-square ``dtype`` matmul with torch's current threads, per second of
     wall time and per second of CPU time (best of ``repeats``)."""
-    a, b = torch.rand(size, size), torch.rand(size, size)
+    a, b = torch.rand(size, size).to(dtype), torch.rand(size, size).to(dtype)
     a @ b  # warm-up
     wall = cpu = float("inf")
     for _ in range(repeats):
@@ -66,19 +68,23 @@ class FloorResult:
 
 
 def floor_ratio(
-    fn: Callable[[], object], flops_of: Callable[[], object], repeats: int
+    fn: Callable[[], object],
+    flops_of: Callable[[], object],
+    repeats: int,
+    dtype: torch.dtype = torch.float32,
 ) -> FloorResult:
     """Time ``fn`` (``repeats`` times, matmul throughput measured around each call) and compare
-    it with the floor of ``flops_of`` (the network part whose FLOPs are counted)."""
+    it with the floor of ``flops_of`` (the network part whose FLOPs are counted) in the
+    arithmetic ``dtype`` it runs in."""
     gflop = count_flops(flops_of) / 1e9
     fn()  # warm-up
-    times, cpu_times, throughputs = [], [], [matmul_gflops()]
+    times, cpu_times, throughputs = [], [], [matmul_gflops(dtype=dtype)]
     for _ in range(repeats):
         start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         times.append(time.perf_counter() - start)
         cpu_times.append(time.process_time() - start_cpu)
-        throughputs.append(matmul_gflops())
+        throughputs.append(matmul_gflops(dtype=dtype))
     return FloorResult(
         gflop,
         statistics.median(times),

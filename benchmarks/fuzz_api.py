@@ -1,7 +1,8 @@
 """Fuzz the whole HTTP API at scale and print the responses counted by status.
 
 Runs the schema-driven fuzz test (``tests/reliability/test_api_fuzz.py``: schemathesis over
-the OpenAPI spec, in process, with tiny real images) with many examples per operation:
+the OpenAPI spec, in process, with tiny real images and hostile field values, on SQLite and on
+PostgreSQL) with many examples per operation (a third of them on PostgreSQL):
 
     python benchmarks/fuzz_api.py --examples 450    # about 10,000 requests
 
@@ -56,6 +57,12 @@ def main() -> int:
     print(f"examples per operation: {args.examples}; wall time {elapsed:.0f} s")
     print(f"requests: {total}; 5xx: {sum(v for k, v in statuses.items() if k >= 500)}")
     print("by status: " + ", ".join(f"{k}: {v}" for k, v in sorted(statuses.items())))
+    for database, counted in sorted(counts.get("by_database", {}).items()):
+        by_status = {int(k): v for k, v in counted.items()}
+        print(
+            f"  {database}: {sum(by_status.values())} requests; "
+            + ", ".join(f"{k}: {v}" for k, v in sorted(by_status.items()))
+        )
     for operation, n in sorted(counts["operations"].items()):
         print(f"  {n:6d}  {operation}")
     return result.returncode

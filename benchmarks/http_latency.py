@@ -14,7 +14,8 @@ fills an atlas over HTTP with the Gardens Point frames, then times single querie
     python benchmarks/http_latency.py --presets fast default
     LOOPNET_BACKBONE=mobilenetv2 python benchmarks/http_latency.py --presets paper
 
-The weights must be in $TORCH_HOME/hub/checkpoints (``loopnet weights seed ../shared/weights``).
+The weights must be in $TORCH_HOME/hub/checkpoints (``loopnet weights seed ../shared/weights``);
+the frames are read from ``../shared/data`` beside the repository (``LOOPNET_SHARED_DIR``).
 The server runs with ``--threads`` torch threads (LOOPNET_TORCH_THREADS).
 """
 
@@ -35,13 +36,14 @@ import httpx
 import numpy as np
 
 from service.features_payload import encode_features
-from service.ml.backbones import BackboneConfig
 from service.ml.images import decode_image
-from service.ml.local_extractors import LocalExtractorConfig
 from service.ml.pipeline import FeaturePipeline
-from service.ml.presets import ModelPreset
+from service.ml.presets import FeatureSignature, ModelPreset
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+# the frames live in ../shared beside the repository, like the test suite's (override with
+# LOOPNET_SHARED_DIR)
+DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", ROOT.parent / "shared")) / "data"
 
 
 def cpu_seconds(pid: int) -> float:
@@ -127,7 +129,9 @@ def bench_preset(preset: str, args: argparse.Namespace, images: list[Path]) -> N
         image_ms = [query(payloads[i % len(payloads)]) for i in range(args.queries)]
         image_cpu_ms = (cpu_seconds(pid) - cpu_before) / args.queries * 1000.0
 
-        signature = client.get("/atlases/bench").json()["feature_signature"]
+        signature = FeatureSignature.from_json(
+            client.get("/atlases/bench").json()["feature_signature"]
+        )
         pipeline = FeaturePipeline(_preset_of(signature))
         features = [encode_features(pipeline.extract(decode_image(p)), signature) for p in payloads]
 
@@ -154,13 +158,9 @@ def bench_preset(preset: str, args: argparse.Namespace, images: list[Path]) -> N
     )
 
 
-def _preset_of(signature: dict) -> ModelPreset:
+def _preset_of(signature: FeatureSignature) -> ModelPreset:
     """The preset an atlas's features were extracted with, from its feature signature."""
-    return ModelPreset(
-        "client",
-        LocalExtractorConfig(**signature["local"]),
-        BackboneConfig(**signature["backbone"]),
-    )
+    return ModelPreset("client", signature.local, signature.backbone)
 
 
 def bench_in_process(preset: str, threads: int, images: list[Path]) -> float:

@@ -27,6 +27,7 @@ from service.index import AtlasIndex
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.heads import HeadsConfig
 from service.ml.pipeline import embed_vectors
+from service.ml.precision import Precision
 from service.ml.training import TrainingConfig, TrainingData, train_heads
 
 LOCAL_DIM, GLOBAL_DIM = 128, 1280  # DISK descriptors, MobileNetV2 channels
@@ -50,7 +51,7 @@ def synthetic_atlas(submaps: int, per_submap: int, seed: int = 0) -> TrainingDat
 
 def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> None:
     data = synthetic_atlas(submaps, per_submap)
-    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM)
     config = TrainingConfig(shots=shots)
     train_heads(data, base, TrainingConfig(shots=shots, epochs=2))  # warm-up (imports, allocator)
     times, cpu_times, epochs = [], [], []
@@ -68,8 +69,8 @@ def bench_training(submaps: int, per_submap: int, shots: int, repeats: int) -> N
     )
 
 
-def bench_reembedding(frames: int, embed_dim: int) -> None:
-    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM, alpha=0.7)
+def bench_reembedding(frames: int, embed_dim: int, precision: Precision = "fp32") -> None:
+    base = HeadsConfig(LOCAL_DIM, GLOBAL_DIM)
     data = synthetic_atlas(20, 10)
     heads = train_heads(data, base, TrainingConfig(shots=5, epochs=3, embed_dim=embed_dim)).heads
     index = AtlasIndex(heads.config.fused_dim)
@@ -82,7 +83,7 @@ def bench_reembedding(frames: int, embed_dim: int) -> None:
         ids = np.arange(start, start + n)
         robots = ["r"] * n
         begin, cpu_begin = time.perf_counter(), time.process_time()
-        index.add(ids, embed_vectors(heads, local, global_), robots)
+        index.add(ids, embed_vectors(heads, local, global_, precision), robots)
         elapsed += time.perf_counter() - begin
         cpu += time.process_time() - cpu_begin
     begin, cpu_begin = time.perf_counter(), time.process_time()
@@ -91,7 +92,8 @@ def bench_reembedding(frames: int, embed_dim: int) -> None:
     cpu += time.process_time() - cpu_begin
     per_100k = elapsed / frames * 100_000
     print(
-        f"re-embedding + index rebuild: {frames} frames, embed_dim {embed_dim}: {elapsed:.2f} s "
+        f"re-embedding ({precision}) + index rebuild: {frames} frames, embed_dim {embed_dim}: "
+        f"{elapsed:.2f} s "
         f"wall, {cpu:.2f} s CPU ({per_100k:.2f} s wall per 100k frames; index {index.size} "
         f"vectors, {index.describe()})"
     )
@@ -149,6 +151,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=1_000_000, help="frames to re-embed")
     parser.add_argument("--embed-dim", type=int, default=256)
     parser.add_argument("--db-frames", type=int, default=20_000)
+    parser.add_argument("--precision", default="fp32", choices=("fp32", "bf16"))
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     args = parser.parse_args()
     if args.threads:
@@ -158,7 +161,7 @@ def main() -> None:
         f"{torch.get_num_threads()} threads"
     )
     bench_training(args.submaps, args.frames_per_submap, args.shots, args.repeats)
-    bench_reembedding(args.frames, args.embed_dim)
+    bench_reembedding(args.frames, args.embed_dim, args.precision)
     bench_database_read(args.db_frames)
 
 

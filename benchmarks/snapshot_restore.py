@@ -26,10 +26,7 @@ from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.fleet.snapshot_restore import restore_atlas
 from service.fleet.snapshots import export_atlas
-from service.ml.backbones.registry import backbone_spec
 from service.ml.heads import HeadsConfig
-from service.ml.local_extractors import LOCAL_EXTRACTORS
-from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
 from service.storage.models import Frame, FrameFeatureRow
@@ -40,14 +37,13 @@ PER_SUBMAP = 100
 def build_atlas(settings: Settings, sessions, name: str, frames: int, keypoints: int) -> None:  # type: ignore[no-untyped-def]
     """An atlas of ``frames`` synthetic frames, written in bulk."""
     preset = settings.preset()
-    local_dim = LOCAL_EXTRACTORS[preset.local.name].descriptor_dim
-    global_dim = backbone_spec(preset.backbone.name).dim
+    local_dim, global_dim = preset.signature.dims
     heads = HeadsConfig(local_dim=local_dim, global_dim=global_dim, alpha=preset.alpha)
     rng = np.random.default_rng(0)
     vectors = ClusteredEmbeddings(frames, local_dim + global_dim, per_place=PER_SUBMAP)
     with transaction(sessions) as session:
         atlas = repo.create_atlas(
-            session, name=name, description="", feature_signature=preset_signature(preset)
+            session, name=name, description="", feature_signature=preset.signature.to_json()
         )
         repo.create_model_version(
             session,

@@ -57,7 +57,7 @@ def _key_row(key: Any) -> dict[str, Any]:
         "id": key.id,
         "name": key.name,
         "role": key.role,
-        "atlases": key.atlases or ["*"],
+        "atlases": list(key.atlases),  # as the API shows them: empty means every atlas
         "prefix": key.prefix,
         "created_at": key.created_at.isoformat(),
         "revoked_at": key.revoked_at.isoformat() if key.revoked_at else None,

@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 from service.errors import Overloaded
+from service.metrics import ADMISSION_WAIT_SECONDS
 
 EWMA_WEIGHT = 0.2  # weight of the newest inference time in the running mean
 
@@ -71,7 +72,11 @@ class InferenceGate:
     @contextmanager
     def slot(self) -> Iterator[None]:
         """Hold one of the ``workers`` slots for the block, or raise :class:`Overloaded`."""
-        self._enter()
+        arrived = time.perf_counter()
+        try:
+            self._enter()
+        finally:
+            ADMISSION_WAIT_SECONDS.observe(time.perf_counter() - arrived)
         start = time.perf_counter()
         try:
             yield

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.fleet.snapshot_archive import ArchiveLimits
-from service.ml.images import ImageLimits
-from service.ml.presets import ModelPreset, resolve_preset
+from service.ml.image_limits import ImageLimits
+
+if TYPE_CHECKING:  # the ML modules import torch; the keys and snapshot commands must not
+    from service.ml.presets import ModelPreset
 
 
 class Settings(BaseSettings):
@@ -84,8 +86,11 @@ class Settings(BaseSettings):
         description="Consecutive agreeing observations of a robot before a loop closure is "
         "accepted (DBoW2's temporal consistency; 1: no check).",
     )
-    max_upload_bytes: int = Field(20 * 1024 * 1024, ge=1024)
-    max_image_pixels: int = Field(40_000_000, ge=1024)
+    max_upload_bytes: int = Field(ImageLimits.max_bytes, ge=1024)
+    max_image_pixels: int = Field(ImageLimits.max_pixels, ge=1024)
+    max_snapshot_bytes: int = Field(
+        4 * 1024**3, ge=1024, description="Largest snapshot archive POST /v1/snapshots accepts."
+    )
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
     model_poll_seconds: float = Field(
         1.0, ge=0.0, description="How often a process checks for a newly activated model version."
@@ -95,6 +100,9 @@ class Settings(BaseSettings):
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(None, ge=1, description="torch intra-op threads.")
+    offline: bool = Field(
+        False, description="Never download missing pretrained weights (air-gapped installs)."
+    )
     job_stale_seconds: float = Field(
         600.0,
         gt=0,
@@ -107,8 +115,24 @@ class Settings(BaseSettings):
         60.0, gt=0, description="How often each worker looks for lost or orphaned jobs."
     )
     inference_workers: int | None = Field(
-        None, ge=1, le=256, description="Concurrent inferences; default: cores / torch threads."
+        None,
+        ge=1,
+        le=256,
+        description="Concurrent inferences; default: cores / torch threads (times max_batch "
+        "when batching is on, so that a batch can fill).",
     )
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto",
+        description="CNN arithmetic: 'auto' = bf16 where the CPU computes it natively "
+        "(AVX512-BF16 or AMX), else fp32; 'fp32' forces float32.",
+    )
+    batch_window_ms: float = Field(
+        0.0,
+        ge=0.0,
+        le=1000.0,
+        description="Concurrent frames arriving within this window share one CNN batch; 0: off.",
+    )
+    max_batch: int = Field(8, ge=1, le=256, description="Most frames in one CNN batch.")
     inference_queue: int = Field(
         16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
     )
@@ -134,8 +158,28 @@ class Settings(BaseSettings):
     snapshot_max_total_bytes: int = Field(
         2 * 1024**3, ge=1024, description="Largest sum of members a snapshot restore reads."
     )
+    log_format: Literal["json", "text"] = Field(
+        "json", description="Per-request log lines: one JSON object each, or plain text."
+    )
+    metrics_public: bool = Field(
+        True, description="Serve GET /metrics without a key (false: an operator key)."
+    )
+    auth_failure_limit: int = Field(
+        20, ge=1, description="Failed authentications one client address may make per window."
+    )
+    auth_failure_window_seconds: float = Field(
+        60.0, gt=0, description="The window of auth_failure_limit; beyond it, 429."
+    )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
+
+    @model_validator(mode="after")
+    def _workers_fill_batches(self) -> Settings:
+        if self.inference_workers is None and self.batch_window_ms > 0 and self.max_batch > 1:
+            from service.concurrency import default_workers
+
+            self.inference_workers = min(256, default_workers(self.torch_threads) * self.max_batch)
+        return self
 
     @property
     def resolved_database_url(self) -> str:
@@ -163,7 +207,13 @@ class Settings(BaseSettings):
     def snapshot_limits(self) -> ArchiveLimits:
         return ArchiveLimits(self.snapshot_max_member_bytes, self.snapshot_max_total_bytes)
 
+    def pipeline_options(self) -> tuple[str, float, int]:
+        """FeaturePipeline's precision, batch_window_ms and max_batch."""
+        return self.precision, self.batch_window_ms, self.max_batch
+
     def preset(self) -> ModelPreset:
+        from service.ml.presets import resolve_preset
+
         return resolve_preset(
             self.model_preset,
             backbone=self.backbone,

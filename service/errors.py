@@ -53,3 +53,15 @@ class Unauthorized(LoopNetError):
 
 class Forbidden(LoopNetError):
     """The key's role or atlases do not cover the request."""
+
+
+class TooManyFailures(LoopNetError):
+    """Too many failed authentications from one client address: retry after a while."""
+
+    def __init__(self, message: str, *, retry_after_s: int = 1) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class RequestTooLarge(LoopNetError):
+    """The request body is over the route's byte limit."""

@@ -28,27 +28,25 @@ from __future__ import annotations
 import io
 import json
 import zipfile
-from typing import Any
 
 import numpy as np
 
 from service.errors import InvalidInput
 from service.ml.aggregation import aggregate_descriptors
-from service.ml.backbones.registry import BACKBONES
 from service.ml.features import FrameFeatures, LocalFeatures
-from service.ml.local_extractors import LOCAL_EXTRACTORS
+from service.ml.presets import FeatureSignature
 
 ARRAYS = ("signature", "image_size", "keypoints", "descriptors", "scores", "global_vector")
 NORM_TOLERANCE = 1e-3  # unit vectors sent as float16 are within ~1e-3 of norm 1
 HEADER_BYTES = 4096  # generous room for each .npy header
 
 
-def encode_features(features: FrameFeatures, signature: dict[str, Any]) -> bytes:
+def encode_features(features: FrameFeatures, signature: FeatureSignature) -> bytes:
     """The ``.npz`` payload of ``features`` extracted with ``signature`` (what a robot posts)."""
     buffer = io.BytesIO()
     np.savez(
         buffer,
-        signature=np.array(json.dumps(signature, sort_keys=True)),
+        signature=np.array(json.dumps(signature.to_json(), sort_keys=True)),
         image_size=np.array(features.image_size, np.int64),
         keypoints=features.local.keypoints.astype(np.float32),
         descriptors=features.local.descriptors.astype(np.float32),
@@ -59,22 +57,25 @@ def encode_features(features: FrameFeatures, signature: dict[str, Any]) -> bytes
 
 
 def decode_features(
-    data: bytes, signature: dict[str, Any], *, max_image_pixels: int
+    data: bytes, signature: FeatureSignature, *, max_image_pixels: int
 ) -> FrameFeatures:
     """Check a payload against the atlas's ``signature`` and turn it into :class:`FrameFeatures`.
 
     Raises :class:`InvalidInput` (HTTP 422) saying what is wrong.
     """
-    local_dim, global_dim, max_keypoints = _dimensions(signature)
+    local_dim, global_dim = signature.dims
+    max_keypoints = signature.local.max_keypoints
     arrays = _read_archive(data, _size_limits(local_dim, global_dim, max_keypoints))
     sent = _signature_of(arrays["signature"])
     if sent != signature:
         raise InvalidInput(
-            f"the features were extracted with {sent}, but this atlas holds features of "
-            f"{signature}; extract them with the atlas's settings"
+            f"the features were extracted with {sent.to_json()}, but this atlas holds features "
+            f"of {signature.to_json()}; extract them with the atlas's settings"
         )
     width, height = _image_size(arrays["image_size"], max_image_pixels)
     keypoints = _float_array("keypoints", arrays["keypoints"], 2)
+    if keypoints.shape[1] != 2:
+        raise InvalidInput(f"keypoints must be N x 2 (x, y), got {keypoints.shape}")
     count = len(keypoints)
     if count > max_keypoints:
         raise InvalidInput(f"{count} keypoints sent; the atlas keeps at most {max_keypoints}")
@@ -106,16 +107,6 @@ def decode_features(
     )
 
 
-def _dimensions(signature: dict[str, Any]) -> tuple[int, int, int]:
-    """(descriptor dim, backbone dim, max keypoints) of a feature signature."""
-    local, backbone = signature["local"], signature["backbone"]
-    return (
-        LOCAL_EXTRACTORS[local["name"]].descriptor_dim,
-        BACKBONES[backbone["name"]].dim,
-        int(local["max_keypoints"]),
-    )
-
-
 def _size_limits(local_dim: int, global_dim: int, max_keypoints: int) -> dict[str, int]:
     """The most bytes each member may inflate to (float64 at worst)."""
     return {
@@ -134,8 +125,7 @@ def _read_archive(data: bytes, limits: dict[str, int]) -> dict[str, np.ndarray]:
         members = {info.filename: info for info in archive.infolist()}
     except (zipfile.BadZipFile, ValueError) as exc:
         raise InvalidInput(f"the features payload is not an .npz archive: {exc}") from exc
-    names = {name.removesuffix(".npy") for name in members}
-    if names != set(ARRAYS) or len(members) != len(ARRAYS):
+    if set(members) != {f"{name}.npy" for name in ARRAYS}:
         raise InvalidInput(
             f"the features payload must hold exactly the arrays {list(ARRAYS)}; "
             f"got {sorted(members)}"
@@ -160,13 +150,15 @@ def _read_archive(data: bytes, limits: dict[str, int]) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _signature_of(array: np.ndarray) -> Any:
+def _signature_of(array: np.ndarray) -> FeatureSignature:
     if array.shape != () or array.dtype.kind != "U":
         raise InvalidInput("'signature' must be a 0-d unicode array holding JSON")
     try:
-        return json.loads(str(array))
+        return FeatureSignature.from_json(json.loads(str(array)))
     except json.JSONDecodeError as exc:
         raise InvalidInput(f"'signature' is not valid JSON: {exc.msg}") from exc
+    except ValueError as exc:
+        raise InvalidInput(f"'signature' is {exc}") from exc
 
 
 def _image_size(array: np.ndarray, max_pixels: int) -> tuple[int, int]:

@@ -18,8 +18,14 @@ from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
 from service.jobs.queue import Queue
+from service.ml import weights
 from service.ml.pipeline import FeaturePipeline
-from service.storage.db import make_engine, make_session_factory, upgrade_database
+from service.storage.db import (
+    make_engine,
+    make_private_dir,
+    make_session_factory,
+    upgrade_database,
+)
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +46,10 @@ class Runtime:
 
     def start(self, *, background: bool = True) -> None:
         """Migrate the database, then load the CNNs and every atlas's index."""
-        self.settings.data_dir.mkdir(parents=True, exist_ok=True)
+        make_private_dir(self.settings.data_dir)
         if self.settings.torch_threads:
             torch.set_num_threads(self.settings.torch_threads)
+        weights.set_offline(self.settings.offline)
         upgrade_database(self.settings.resolved_database_url)
         self.engine = make_engine(self.settings.resolved_database_url)
         self.sessions = make_session_factory(self.engine)
@@ -56,10 +63,11 @@ class Runtime:
 
     def _load(self) -> None:
         try:
-            preset = self.settings.preset()
+            # an injected pipeline (tests, `loopnet eval`) may run other settings than the preset
+            preset = self._pipeline.preset if self._pipeline else self.settings.preset()
             log.info("loading model preset %r (%s, %s)", preset.name, preset.local, preset.backbone)
             assert self.sessions is not None
-            pipeline = self._pipeline or FeaturePipeline(preset)
+            pipeline = self._pipeline or FeaturePipeline(preset, *self.settings.pipeline_options())
             service = AtlasService(self.settings, self.sessions, pipeline)
             service.load_all()
             self._follower = ChangeFollower(
@@ -97,6 +105,11 @@ class Runtime:
                 f"start-up failed: {self.error}" if self.error else "the model is still loading"
             )
         return self._service
+
+    @property
+    def last_sync(self) -> float | None:
+        """When (epoch seconds) this process last caught up with the change feed."""
+        return self._follower.last_sync if self._follower is not None else None
 
     def database_reachable(self) -> bool:
         if self.engine is None:

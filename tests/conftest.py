@@ -29,8 +29,9 @@ pytest_plugins = ["tests.services"]  # postgres_url, redis_queue
 
 
 def _seed_torch_home() -> Path:
-    from service.ml.weights import seed_cache
+    from service.ml.weights import seed_cache, set_offline
 
+    set_offline(True)  # never reach for the network in tests (LOOPNET_OFFLINE: in subprocesses)
     if not WEIGHTS_DIR.is_dir():
         raise RuntimeError(
             f"the tests need the pretrained weights in {WEIGHTS_DIR} (set LOOPNET_SHARED_DIR)"

@@ -8,6 +8,7 @@ database ``test``, Redis on 127.0.0.1:6379; override with ``LOOPNET_TEST_POSTGRE
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import uuid
@@ -46,6 +47,13 @@ def need(name: str, url: str, default_port: int) -> None:
 @pytest.fixture
 def postgres_url() -> Iterator[str]:
     """The URL of a new, empty PostgreSQL database, dropped after the test."""
+    with new_postgres_database() as url:
+        yield url
+
+
+@contextlib.contextmanager
+def new_postgres_database() -> Iterator[str]:
+    """A new, empty PostgreSQL database's URL, dropped on exit (any fixture scope)."""
     need("PostgreSQL", POSTGRES_URL, 5432)
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url

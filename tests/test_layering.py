@@ -1,6 +1,7 @@
 """The layers stay layered: checked on the source with ``ast``, so a wrong import fails here.
 
-- ``service.ml`` (the models and the geometry) imports no storage, API or application code;
+- ``service.ml`` (the models and the geometry) imports no storage, API or application code and
+  reads no environment variable (settings are passed in);
 - a route module imports no ``service.storage`` at run time (it calls the application layer;
   imports under ``if TYPE_CHECKING:`` only name types for annotations);
 - nothing in ``service`` imports ``workers`` (the worker entry point sits on top).
@@ -67,6 +68,52 @@ def test_ml_imports_no_storage_api_or_application_code() -> None:
     assert files
     forbidden = ("service.storage", "service.api", "service.config", "workers", *APPLICATION)
     assert violations(files, forbidden) == []
+
+
+ENVIRONMENT = {"environ", "environb", "getenv", "getenvb", "putenv", "unsetenv"}
+
+
+def environment_reads(source: str) -> list[str]:
+    """Where a module touches the environment through ``os`` (``os.environ``, ``os.getenv``,
+    ``from os import environ``), as ``line: code``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        touches = (
+            isinstance(node, ast.Attribute)
+            and node.attr in ENVIRONMENT
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "os"
+        ) or (
+            isinstance(node, ast.ImportFrom)
+            and node.module == "os"
+            and any(alias.name in ENVIRONMENT for alias in node.names)
+        )
+        if touches:
+            found.append(f"{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_ml_reads_no_environment_variable() -> None:
+    reads = {
+        str(path.relative_to(ROOT)): environment_reads(path.read_text())
+        for path in sorted((SERVICE / "ml").rglob("*.py"))
+    }
+    assert {path: found for path, found in reads.items() if found} == {}
+
+
+@pytest.mark.parametrize(
+    ("source", "expected"),
+    [
+        ("import os\nx = os.environ.get('LOOPNET_OFFLINE')\n", True),
+        ("import os\nx = os.getenv('A')\n", True),
+        ("from os import environ\n", True),
+        ("from os import getenv as g\n", True),
+        ("import os\nx = os.path.join('a', 'b')\n", False),
+        ("x = settings.environ\n", False),
+    ],
+)
+def test_the_environment_check_sees_what_it_must(source: str, expected: bool) -> None:
+    assert bool(environment_reads(source)) is expected
 
 
 def test_routes_never_import_storage() -> None:

@@ -9,9 +9,14 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
+from service.api import metrics
+from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
+from service.api.guard import RequestGuard
+from service.api.request_log import RequestLogMiddleware
 from service.api.routes import (
     atlases,
+    browse,
     features,
     frames,
     health,
@@ -23,6 +28,7 @@ from service.api.routes import (
 )
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
+from service.console.router import install as install_console
 from service.fleet.keys import Authenticator
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
@@ -63,9 +69,13 @@ def create_app(
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # served from the package's files, below: no CDN
+        redoc_url=None,
     )
     app.state.runtime = runtime
     install_error_handlers(app)
+    app.add_middleware(RequestGuard, settings=runtime.settings)
+    install_offline_docs(app)
     routers = (
         health,
         atlases,
@@ -76,9 +86,13 @@ def create_app(
         keys,
         loop_closures,
         snapshots,
+        browse,
     )
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
+    metrics.install(app, runtime)
+    install_console(app)
+    app.add_middleware(RequestLogMiddleware, log_format=runtime.settings.log_format)
     return app
 
 

@@ -1,8 +1,11 @@
-"""Role dependencies for routes: ``RobotAccess``, ``OperatorAccess``, ``AdminAccess``.
+"""Role dependencies for routes: ``RobotAccess``, ``OperatorAccess``, ``AdminAccess`` and
+``UnscopedAdminAccess``.
 
-Add one as a parameter of a route (``_: OperatorAccess``): it reads the key from
-``Authorization: Bearer <key>`` or ``X-API-Key``, answers 401 without a valid key and 403 when
-the key's role is too low or the route's ``{atlas}`` path parameter is not one of its atlases.
+Add one as a parameter of a route (``_: OperatorAccess``): it answers 403 when the key's role is
+too low, the route's ``{atlas}`` path parameter is not one of its atlases, or (unscoped) the key
+is limited to some atlases. The key itself (``Authorization: Bearer <key>`` or ``X-API-Key``)
+was already checked by :class:`~service.api.guard.RequestGuard` before the body was read (401);
+dependencies run before FastAPI validates the body, so a 422 means the caller got past auth.
 The parameter's value is the caller (:class:`~service.fleet.keys.Principal`).
 """
 
@@ -28,8 +31,25 @@ def get_authenticator(request: Request) -> Authenticator:
     return authenticator
 
 
-def require(role: Role) -> Callable[..., Principal]:
-    """A dependency admitting keys of ``role`` or above (on the route's atlas, if it has one)."""
+PRINCIPAL_KEY = "loopnet.principal"  # where the guard leaves the caller in the ASGI scope
+
+
+def presented_token(authorization: str | None, api_key: str | None) -> str | None:
+    """The key of ``Authorization: Bearer <key>``, else of ``X-API-Key``."""
+    if authorization:
+        scheme, _, credentials = authorization.partition(" ")
+        if scheme.lower() == "bearer" and credentials.strip():
+            return credentials.strip()
+    return api_key or None
+
+
+def client_address(request: Request) -> str | None:
+    return request.client.host if request.client else None
+
+
+def require(role: Role, *, unscoped: bool = False) -> Callable[..., Principal]:
+    """A dependency admitting keys of ``role`` or above (on the route's atlas, if it has one;
+    with ``unscoped``, only keys for every atlas)."""
 
     def dependency(
         request: Request,
@@ -37,16 +57,24 @@ def require(role: Role) -> Callable[..., Principal]:
         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
         api_key: Annotated[str | None, Depends(api_key_header)],
     ) -> Principal:
-        token = credentials.credentials if credentials is not None else api_key
-        return authenticator.authorize(token, role, request.path_params.get("atlas"))
+        principal: Principal | None = request.scope.get(PRINCIPAL_KEY)
+        if principal is None:  # an app without the guard
+            token = credentials.credentials if credentials is not None else api_key
+            principal = authenticator.authenticate(token, client_address(request))
+        caller = authenticator.authorize(
+            principal, role, request.path_params.get("atlas"), unscoped=unscoped
+        )
+        request.state.caller = caller  # the request log names the robot
+        return caller
 
-    dependency.__name__ = f"require_{role.name}"
+    dependency.__name__ = f"require_{'unscoped_' if unscoped else ''}{role.name}"
     return dependency
 
 
 RobotAccess = Annotated[Principal, Depends(require(Role.robot))]
 OperatorAccess = Annotated[Principal, Depends(require(Role.operator))]
 AdminAccess = Annotated[Principal, Depends(require(Role.admin))]
+UnscopedAdminAccess = Annotated[Principal, Depends(require(Role.admin, unscoped=True))]
 
 
 @overload

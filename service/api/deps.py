@@ -11,7 +11,8 @@ from service.runtime import Runtime
 
 
 def get_runtime(request: Request) -> Runtime:
-    return request.app.state.runtime
+    runtime: Runtime = request.app.state.runtime
+    return runtime
 
 
 def get_service(runtime: Annotated[Runtime, Depends(get_runtime)]) -> AtlasService:

@@ -8,16 +8,22 @@ from typing import Annotated
 
 from fastapi import Depends, Form
 
+from service.api.auth import acting_robot
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
 from service.atlas.filters import QueryFilter, make_filter
 from service.config import Settings
+from service.errors import InvalidInput
+from service.fleet.keys import Principal
 from service.ml.geometry import Intrinsics, Pose
 
 # ----- a new frame ---------------------------------------------------------------------------
 
 SubmapName = Annotated[str, Form(description="Name of an existing submap.")]
-FrameRobot = Annotated[str, Form(description="The robot that took the frame.")]
+FrameRobot = Annotated[
+    str | None,
+    Form(description="The robot that took the frame; a robot key's own robot when left out."),
+]
 Timestamp = Annotated[float | None, Form(description="Capture time, seconds.")]
 PoseField = Annotated[
     str | None,
@@ -26,6 +32,14 @@ PoseField = Annotated[
 FrameIntrinsics = Annotated[
     str | None, Form(description='JSON: {"fx": .., "fy": .., "cx": .., "cy": ..}')
 ]
+
+
+def frame_robot(caller: Principal, robot_id: str | None) -> str:
+    """The robot a new frame belongs to: the one named, or the robot key's own robot."""
+    robot = acting_robot(caller, robot_id or None)
+    if not robot:
+        raise InvalidInput("robot_id is required (only a robot key may leave it out)")
+    return robot
 
 
 def pose_from_form(raw: str | None) -> Pose | None:

@@ -6,6 +6,10 @@ from datetime import datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
+
+from service.atlas.names import NAME_PATTERN
+from service.ml.training import TrainingConfig
 
 
 class ErrorOut(BaseModel):
@@ -14,7 +18,7 @@ class ErrorOut(BaseModel):
 
 
 class AtlasIn(BaseModel):
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", examples=["campus"])
+    name: str = Field(pattern=NAME_PATTERN.pattern, examples=["campus"])
     description: str = Field("", max_length=1000)
 
 
@@ -34,7 +38,7 @@ class AtlasOut(BaseModel):
 
 
 class SubmapIn(BaseModel):
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", examples=["corridor-3"])
+    name: str = Field(pattern=NAME_PATTERN.pattern, examples=["corridor-3"])
 
 
 class SubmapOut(BaseModel):
@@ -196,43 +200,9 @@ class ReadyOut(BaseModel):
     )
 
 
-TrainablePart = Literal["fusion", "similarity", "classifier"]
-
-
-def _all_parts() -> list[TrainablePart]:
-    return ["fusion", "similarity", "classifier"]
-
-
-class RetrainParams(BaseModel):
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class RetrainParams(TrainingConfig):
     """Parameters of a retraining job; every field has a default."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    shots: int = Field(5, ge=1, le=100, description="Training frames (shots) per submap.")
-    epochs: int = Field(
-        100, ge=1, le=2000, description="Most epochs; early stopping may end sooner."
-    )
-    learning_rate: float = Field(3e-3, gt=0, le=1)
-    weight_decay: float = Field(1e-4, ge=0, le=1)
-    classification_weight: float = Field(1.0, ge=0, le=100, description="Cross-entropy weight.")
-    contrastive_weight: float = Field(1.0, ge=0, le=100, description="Contrastive loss weight.")
-    margin: float = Field(
-        1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
-    )
-    embed_dim: int = Field(256, ge=2, le=4096, description="Size of the trained fused embedding.")
-    train: list[TrainablePart] = Field(
-        default_factory=_all_parts,
-        min_length=1,
-        description="Which layers are trained; the others keep their initialisation.",
-    )
-    noise_std: float = Field(0.01, ge=0, le=1, description="Gaussian noise on stored vectors.")
-    feature_dropout: float = Field(
-        0.1, ge=0, lt=1, description="Feature dropout on stored vectors."
-    )
-    patience: int = Field(
-        15, ge=1, le=1000, description="Epochs without validation gain before stopping."
-    )
-    seed: int = Field(0, ge=0)
 
 
 class JobIn(BaseModel):

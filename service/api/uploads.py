@@ -29,6 +29,8 @@ def parse_json_field(name: str, raw: str | None, model: type[Model]) -> Model | 
         return model.model_validate(json.loads(raw))
     except json.JSONDecodeError as exc:
         raise InvalidInput(f"field '{name}' is not valid JSON: {exc.msg}") from exc
+    except RecursionError as exc:  # the decoder recurses once per nesting level
+        raise InvalidInput(f"field '{name}' is nested too deeply") from exc
     except ValidationError as exc:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e['loc']) or name}: {e['msg']}" for e in exc.errors()

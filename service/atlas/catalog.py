@@ -13,6 +13,7 @@ from typing import Any
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import model_versions as models_store
+from service.atlas import reads
 from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameIngest
 from service.atlas.names import validate_name
@@ -76,7 +77,7 @@ class AtlasService:
                 session,
                 name=name,
                 description=description,
-                feature_signature=self.pipeline.signature,
+                feature_signature=self.pipeline.signature.to_json(),
             )
             repo.create_model_version(
                 session,
@@ -115,6 +116,10 @@ class AtlasService:
             activated = repo.activate_model_version(session, atlas_id=found.id, version=version)
         self.states.refresh(found.id)
         return activated
+
+    def served_indexes(self) -> list[reads.ServedIndex]:
+        """What this process serves: each loaded atlas's index size and change-feed lag."""
+        return reads.served_indexes(self.sessions, self.states.serving())
 
     def rebuild_index(self, atlas_name: str) -> int:
         """Re-embed every frame of an atlas from stored features into a fresh index file."""

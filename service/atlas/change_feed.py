@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import timedelta
@@ -124,6 +125,7 @@ class ChangeFollower:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="loopnet-sync", daemon=True)
         self._since_prune = 0.0
+        self.last_sync: float | None = None
 
     def start(self) -> None:
         self._thread.start()
@@ -137,6 +139,7 @@ class ChangeFollower:
         with self._sessions() as session:
             current = revisions(session)
         self._catch_up(current)
+        self.last_sync = time.time()  # seen by /metrics as the change feed's lag
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval):

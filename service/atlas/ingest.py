@@ -18,11 +18,13 @@ from service.atlas.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.ml.thumbnails import make_thumbnail
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame
@@ -35,7 +37,9 @@ def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
 
 
 def embed(heads: LoopNetHeads, features: FrameFeatures) -> np.ndarray:
-    return embed_vectors(heads, features.local_vector[None], features.global_vector[None])[0]
+    vectors = embed_vectors(heads, features.local_vector[None], features.global_vector[None])
+    row: np.ndarray = vectors[0]
+    return row
 
 
 class FrameIngest:
@@ -58,10 +62,11 @@ class FrameIngest:
     def checked_atlas(self, session: Session, atlas_name: str) -> Atlas:
         """The atlas by name (NotFound), refused (Conflict) when its features are not ours."""
         atlas = repo.get_atlas(session, name=atlas_name)
-        if atlas.feature_signature != self.pipeline.signature:
+        if not self.pipeline.signature.matches(atlas.feature_signature):
             raise Conflict(
                 f"atlas '{atlas.name}' holds features {atlas.feature_signature}, but this service "
-                f"extracts {self.pipeline.signature}; run the service with the atlas's preset"
+                f"extracts {self.pipeline.signature.to_json()}; run the service with the atlas's "
+                "preset"
             )
         return atlas
 
@@ -73,6 +78,8 @@ class FrameIngest:
             rgb = decode_image(image_bytes, self.settings.image_limits)
             decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
+            features.thumbnail = make_thumbnail(rgb)
+        observe_stages({"decode": decode_ms, **features.timings_ms})
         return features, decode_ms
 
     def ingest_frame(

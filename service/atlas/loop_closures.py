@@ -1,12 +1,13 @@
 """Inter-robot loop closures: a robot recognised a place that another robot mapped.
 
-Each query (and, once wired, each observation) whose answer is a loop closure onto a frame
+Each query and each observation whose answer is a loop closure onto a frame
 taken by a different robot than the one asking is recorded, so a fleet's map-merging back end
 can list the links between the robots' trajectories.
 """
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from datetime import datetime
 
 from sqlalchemy import or_, select
@@ -14,15 +15,23 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.results import QueryResult
 from service.storage.db import transaction
-from service.storage.models import Frame, LoopClosure, Submap
+from service.storage.models import Frame, LoopClosure, LoopClosureThumbnail, Submap
 
 SOURCES = ("query", "observe")
 
 
 def record_if_inter_robot(
-    sessions: sessionmaker[Session], *, robot_id: str | None, result: QueryResult, source: str
+    sessions: sessionmaker[Session],
+    *,
+    robot_id: str | None,
+    result: QueryResult,
+    source: str,
+    query_frame_id: int | None = None,
 ) -> int | None:
-    """Record ``result`` when it closes a loop onto another robot's frame; returns the row id."""
+    """Record ``result`` when it closes a loop onto another robot's frame; returns the row id.
+
+    ``query_frame_id``: the frame an observation stored (its keypoints let the matches be
+    redrawn later); a query stores none."""
     assert source in SOURCES, source
     match = result.match
     if robot_id is None or not result.loop_closure or match is None:
@@ -42,9 +51,14 @@ def record_if_inter_robot(
             similarity=float(match.similarity),
             model_version=result.model_version,
             source=source,
+            inliers=match.inliers,
+            relative_pose=asdict(match.relative_pose) if match.relative_pose else None,
+            query_frame_id=query_frame_id,
         )
         session.add(row)
         session.flush()
+        if result.query_thumbnail is not None:
+            session.add(LoopClosureThumbnail(loop_closure_id=row.id, jpeg=result.query_thumbnail))
         return row.id
 
 

@@ -53,18 +53,35 @@ def index_file(index_dir: Path, atlas_id: int, version: int) -> Path:
     return index_dir / f"atlas-{atlas_id}-v{version}.faiss"
 
 
+def atlas_models_dir(models_dir: Path, atlas_id: int) -> Path:
+    """The folder of an atlas's trained weights files."""
+    return models_dir / f"atlas-{atlas_id}"
+
+
 def weights_file(models_dir: Path, atlas_id: int, version: int) -> Path:
-    """The heads' weights of a trained version (relative paths in the row are under models_dir)."""
-    return models_dir / f"atlas-{atlas_id}" / f"v{version}.pt"
+    """The heads' weights of a trained version."""
+    return atlas_models_dir(models_dir, atlas_id) / f"v{version}.pt"
+
+
+def row_weights_path(models_dir: Path, atlas_id: int, version: int) -> str:
+    """What a version's row records for its weights file: the path under ``models_dir``."""
+    return str(weights_file(models_dir, atlas_id, version).relative_to(models_dir))
+
+
+def weights_of(version: ModelVersion, models_dir: Path) -> Path | None:
+    """The weights file a version's row names (relative paths are under ``models_dir``); None
+    for an untrained version."""
+    if version.weights_path is None:
+        return None
+    path = Path(version.weights_path)
+    return path if path.is_absolute() else models_dir / path
 
 
 def load_heads(version: ModelVersion, models_dir: Path) -> LoopNetHeads:
     """The heads of ``version``: from its weights file, or rebuilt untrained from its config."""
-    if version.weights_path is None:
+    path = weights_of(version, models_dir)
+    if path is None:
         return LoopNetHeads(VersionConfig.of(version).heads).eval()
-    path = Path(version.weights_path)
-    if not path.is_absolute():
-        path = models_dir / path
     return LoopNetHeads.load(path)
 
 
@@ -72,4 +89,4 @@ def remove_atlas_files(index_dir: Path, models_dir: Path, atlas_id: int) -> None
     """Delete every index file and weights file of an atlas (its rows are deleted apart)."""
     for path in index_dir.glob(f"atlas-{atlas_id}-*.faiss"):
         path.unlink(missing_ok=True)
-    shutil.rmtree(models_dir / f"atlas-{atlas_id}", ignore_errors=True)
+    shutil.rmtree(atlas_models_dir(models_dir, atlas_id), ignore_errors=True)

@@ -178,4 +178,5 @@ def with_extraction_timings(
         **result.timings_ms,
         "total": round((time.perf_counter() - total_start) * 1000.0, 3),
     }
+    result.query_thumbnail = features.thumbnail
     return result

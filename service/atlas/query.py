@@ -35,6 +35,7 @@ from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
+from service.metrics import observe_stages
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics
 from service.ml.sequences import PlaceStatus
@@ -196,6 +197,7 @@ class AtlasQueries(Observations):
             )
         else:
             guess = SubmapGuess(True, found.names.get(prediction.submap_id), prediction.probability)
+        observe_stages(timings)
         threshold = self.settings.loop_closure_threshold
         match = candidates[0] if candidates else None
         enabled = self.verification.enabled

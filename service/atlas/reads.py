@@ -8,10 +8,15 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas.change_feed import revisions
 from service.atlas.loop_closures import list_loop_closures
 from service.atlas.model_versions import VersionConfig
+from service.atlas.state import LoadedAtlas
+from service.errors import Conflict
+from service.ml.presets import FeatureSignature
 from service.storage import repository as repo
 from service.storage.models import Atlas, Frame, LoopClosure, ModelVersion, Submap
 
@@ -53,9 +58,14 @@ def unavailable_atlases(sessions: Sessions, reasons: dict[int, str]) -> dict[str
     return {names[i]: reason for i, reason in reasons.items() if i in names}
 
 
-def feature_signature(sessions: Sessions, atlas: str) -> dict[str, Any]:
+def feature_signature(sessions: Sessions, atlas: str) -> FeatureSignature:
+    """The signature of the atlas's features (Conflict when its row holds none)."""
     with sessions() as session:
-        return repo.get_atlas(session, name=atlas).feature_signature
+        stored = repo.get_atlas(session, name=atlas).feature_signature
+    try:
+        return FeatureSignature.from_json(stored)
+    except ValueError as exc:
+        raise Conflict(f"atlas '{atlas}' records no usable feature signature: {exc}") from exc
 
 
 def submaps_with_counts(sessions: Sessions, atlas: str) -> list[tuple[Submap, int]]:
@@ -94,3 +104,27 @@ def loop_closures(
     with sessions() as session:
         found = repo.get_atlas(session, name=atlas)
         return list_loop_closures(session, atlas_id=found.id, robot=robot, since=since, limit=limit)
+
+
+@dataclass(frozen=True)
+class ServedIndex:
+    atlas: str
+    frames: int  # in this process's index
+    revisions_behind: int  # how far the database's change feed is ahead of the index
+
+
+def served_indexes(sessions: Sessions, serving: list[LoadedAtlas]) -> list[ServedIndex]:
+    """Each served atlas's index size and its lag behind the change feed (atlases deleted
+    meanwhile are left out)."""
+    with sessions() as session:
+        names = {i: name for i, name in session.execute(select(Atlas.id, Atlas.name))}
+        current = revisions(session)
+    return [
+        ServedIndex(
+            names[state.atlas_id],
+            state.index.size,
+            max(0, current.get(state.atlas_id, 0) - state.revision),
+        )
+        for state in serving
+        if state.atlas_id in names
+    ]

@@ -59,6 +59,7 @@ class QueryResult:
     new_place: bool = True  # status == "new_place", a field of its own
     consistent: int = 0  # consecutive agreeing observations, this one included
     sequence: SequenceAnswer | None = None
+    query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

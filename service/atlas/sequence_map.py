@@ -87,7 +87,8 @@ class SequenceMap:
         return np.array([self.position.get(int(i), -1) for i in frame_ids], dtype=np.int64)
 
     def lookup(self, positions: np.ndarray) -> np.ndarray:
-        return self._vectors[positions]
+        rows: np.ndarray = self._vectors[positions]
+        return rows
 
 
 def _rows_and_vectors(

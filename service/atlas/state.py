@@ -73,6 +73,11 @@ class AtlasStates:
         with self._loaded_lock:
             return self.loaded_states.get(atlas_id)
 
+    def serving(self) -> list[LoadedAtlas]:
+        """The states this process serves now (a snapshot; never loads)."""
+        with self._loaded_lock:
+            return list(self.loaded_states.values())
+
     def forget(self, atlas_id: int) -> None:
         with self._loaded_lock:
             self.loaded_states.pop(atlas_id, None)

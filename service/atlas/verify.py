@@ -61,11 +61,21 @@ class CandidateVerification:
                 local = stored.get(frame.id)
                 if local is None:
                     continue
-                intrinsics = (
-                    Intrinsics(frame.fx, frame.fy, frame.cx, frame.cy)  # type: ignore[arg-type]
-                    if frame.fx is not None
-                    else None
-                )
-                view = View(local, (frame.width, frame.height), intrinsics)
-                found[frame.id] = verifier.verify(query, view)
+                found[frame.id] = verifier.verify(query, frame_view(frame, local))
         return found
+
+    def verify_pair(self, query: View, candidate: View) -> Verification:
+        """One pair, keeping which matches were inliers (to draw them)."""
+        verifier = self.verifier
+        with self.inference.slot():
+            return verifier.verify(query, candidate, keep_inliers=True)
+
+
+def frame_view(frame: Frame, local: LocalFeatures) -> View:
+    """A stored frame as verification sees it: its keypoints, decoded size and intrinsics."""
+    intrinsics = (
+        Intrinsics(frame.fx, frame.fy, frame.cx, frame.cy)  # type: ignore[arg-type]
+        if frame.fx is not None
+        else None
+    )
+    return View(local, (frame.width, frame.height), intrinsics)

@@ -13,9 +13,10 @@ Layouts (``LAYOUTS``; :func:`detect_layout` picks one from the folder's contents
   Submaps are the dataset's own; the last shot of each submap is its query, the others are
   references, and a query is right on any reference of its submap.
 - ``csv``: a ``dataset.csv`` for users' own data; columns are documented in :func:`read_csv`.
-- ``places``: ``<place>/<image>`` folders; two images match when they share the place. With
-  ``ref/<place>/`` and ``query/<place>/`` the split is given; otherwise the first image of each
-  place (natural order) is its reference and the others are queries.
+- ``places``: ``<place>/<image>`` folders, or ``<place>/<view>/<image>`` for places seen from
+  several views; two images match when they share the place. With ``ref/<place>/`` and
+  ``query/<place>/`` the split is given; otherwise the first image of each place (natural
+  order) is its reference and the others are queries.
 """
 
 from __future__ import annotations
@@ -35,6 +36,10 @@ CSV_NAME = "dataset.csv"
 VPR_BENCH_GT = "ground_truth_new.npy"
 LOOPDB_IMAGES = Path("datastream_1") / "data_descriptor.csv"
 LOOPDB_POSES = Path("datastream_2") / "data_descriptor.csv"
+
+
+class DatasetError(ValueError):
+    """The folder does not hold a dataset in the layout asked for (a message for the user)."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +117,31 @@ class Dataset:
             ],
         )
 
+    def without(self, dropped: dict[Path, str]) -> Dataset:
+        """The dataset without the images in ``dropped`` (path -> why), positives renumbered;
+        queries left without a positive are dropped too. Each drop is listed in ``excluded``."""
+        if not dropped:
+            return self
+        kept_refs = [i for i, r in enumerate(self.references) if r.path not in dropped]
+        renumber = {old: new for new, old in enumerate(kept_refs)}
+        queries = [
+            replace(q, positives=frozenset(renumber[i] for i in q.positives if i in renumber))
+            for q in self.queries
+            if q.path not in dropped
+        ]
+        answerable = [q for q in queries if q.positives]
+        notes = [f"unreadable image {path}: {why}" for path, why in sorted(dropped.items())]
+        if len(answerable) < len(queries):
+            notes.append(
+                f"{len(queries) - len(answerable)} queries whose every positive was unreadable"
+            )
+        return replace(
+            self,
+            references=[self.references[i] for i in kept_refs],
+            queries=answerable,
+            excluded=[*self.excluded, *notes],
+        )
+
 
 # ----- helpers ----------------------------------------------------------------------------
 
@@ -139,7 +169,7 @@ def image_folders(root: Path) -> list[Path]:
 
 def _require(condition: bool, message: str) -> None:
     if not condition:
-        raise ValueError(message)
+        raise DatasetError(message)
 
 
 # ----- frame-aligned traversals -----------------------------------------------------------
@@ -441,8 +471,22 @@ def read_csv(root: Path, *, tolerance: int = 1, distance: float = 25.0) -> Datas
 # ----- place-labelled folders -------------------------------------------------------------
 
 
+def place_images(folder: Path) -> list[Path]:
+    """A place's images: those directly in it, then those of its view sub-folders."""
+    views = sorted((d for d in folder.iterdir() if d.is_dir()), key=lambda d: natural_key(d.name))
+    return list_images(folder) + [path for view in views for path in list_images(view)]
+
+
+def place_folders(root: Path) -> list[Path]:
+    """Sub-folders of ``root`` holding images directly or in view sub-folders."""
+    return sorted(
+        (d for d in root.iterdir() if d.is_dir() and place_images(d)),
+        key=lambda d: natural_key(d.name),
+    )
+
+
 def _places(folder: Path) -> list[tuple[str, list[Path]]]:
-    return [(d.name, list_images(d)) for d in image_folders(folder)]
+    return [(d.name, place_images(d)) for d in place_folders(folder)]
 
 
 def read_places(root: Path) -> Dataset:
@@ -493,13 +537,13 @@ def detect_layout(root: Path) -> str:
         return "csv"
     folders = image_folders(root)
     if (root / "ref").is_dir() and (root / "query").is_dir():
-        nested = image_folders(root / "ref")
+        nested = place_folders(root / "ref")
         return "places" if nested and not list_images(root / "ref") else "traversals"
     if len(folders) == 2 and len(list_images(folders[0])) == len(list_images(folders[1])):
         return "traversals"
-    if folders:
+    if folders or place_folders(root):
         return "places"
-    raise ValueError(
+    raise DatasetError(
         f"{root}: no known dataset layout (expected one of {', '.join(LAYOUTS)}); "
         "see `loopnet eval --help`"
     )
@@ -528,8 +572,13 @@ def load_dataset(
         "places": lambda: read_places(root),
     }
     if chosen not in readers:
-        raise ValueError(f"unknown layout {chosen!r}; choose one of {', '.join(LAYOUTS)}")
-    dataset = readers[chosen]()
+        raise DatasetError(f"unknown layout {chosen!r}; choose one of {', '.join(LAYOUTS)}")
+    try:
+        dataset = readers[chosen]()
+    except DatasetError:
+        raise
+    except (OSError, ValueError, KeyError, IndexError) as exc:  # the folder is another layout
+        raise DatasetError(f"{root} does not read as layout {chosen!r}: {exc}") from exc
     _require(bool(dataset.references), f"{root}: no reference images")
     _require(bool(dataset.queries), f"{root}: no query images")
     return dataset

@@ -29,7 +29,7 @@ from service.evaluation.datasets import Dataset, ReferenceFrame
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.metrics import precision_recall, summary
 from service.evaluation.online_service import service_observations
-from service.evaluation.service_pass import CachedFeatures, cache_path
+from service.evaluation.service_pass import CACHE_ARRAYS, CachedFeatures, cache_path, file_stamp
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
@@ -144,8 +144,13 @@ def trajectory_vectors(
         ground_truth=trajectory.ground_truth,
     )
     path = cache_path(cache_dir, as_dataset, pipeline) if cache_dir else None
-    if path is not None and path.is_file():
-        return CachedFeatures.load(path)
+    cached = CachedFeatures.load(path) if path is not None else None
+    if cached is not None:
+        rows = cached.rows()
+        order = [rows.get(image.resolve()) for image in trajectory.images]
+        if all(row is not None for row in order):
+            take = np.array(order, np.int64)
+            return CachedFeatures(**{name: getattr(cached, name)[take] for name in CACHE_ARRAYS})
     local, global_, keypoints, sizes, stages = [], [], [], [], []
     for image in tqdm(trajectory.images, desc=f"features: {trajectory.name}", unit="img"):
         start = time.perf_counter()
@@ -163,7 +168,9 @@ def trajectory_vectors(
                 features.timings_ms["global_features"],
             ]
         )
-    cached = CachedFeatures(
+    fresh = CachedFeatures(
+        paths=np.array([str(p.resolve()) for p in trajectory.images]),
+        stamps=np.array([file_stamp(p) for p in trajectory.images], np.int64),
         local=np.stack(local),
         global_=np.stack(global_),
         keypoints=np.array(keypoints, np.int64),
@@ -171,8 +178,8 @@ def trajectory_vectors(
         stage_ms=np.array(stages, np.float64),
     )
     if path is not None:
-        cached.save(path)
-    return cached
+        (cached.merged(fresh) if cached is not None else fresh).save(path)
+    return fresh
 
 
 def replay(

@@ -106,6 +106,11 @@ def write_markdown(report: dict[str, Any], methods: Sequence[MethodResult], path
         "",
         f"Command: `{report['command']}`",
         "",
+        *(
+            [f"**Partial report**: the run {report['partial']}.", ""]
+            if report.get("partial")
+            else []
+        ),
         f"- Layout: {d['layout']} ({d['root']}); {d['references']} reference frames, "
         f"{d['queries']} queries ({d['answerable']} with a right reference).",
         f"- Ground truth: {d['ground_truth']}.",

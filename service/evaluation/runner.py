@@ -35,7 +35,8 @@ from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
 from service.evaluation.baselines.seqslam import full_seqslam
 from service.evaluation.calibrated_pass import calibrated_methods
-from service.evaluation.datasets import Dataset, load_dataset
+from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
+from service.evaluation.image_check import unreadable_images
 from service.evaluation.metrics import rank_by_similarity, summary
 from service.evaluation.protocol import (
     MethodResult,
@@ -92,6 +93,8 @@ class EvalConfig:
         sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
         sequence_seed_frames: newest query frames whose best matches propose candidates (the
             service's 1: its own search hits; 0: every frame's).
+        precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
+            precision are reused in another, so give each its own ``cache_dir``.
     """
 
     dataset: Path
@@ -122,6 +125,7 @@ class EvalConfig:
     sequence: tuple[int, ...] = ()
     sequence_contrast: int = 0
     sequence_seed_frames: int = 1
+    precision: str = "fp32"
 
 
 @dataclass
@@ -297,7 +301,10 @@ def _full_seqslam_methods(
 
 
 def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
-    loopnet = next(m for m in methods if m.kind == "loopnet")
+    # the calibrated row; today's uncalibrated one where no calibration could be fitted
+    loopnet = next((m for m in methods if m.kind == "loopnet"), None) or next(
+        m for m in methods if m.kind == UNCALIBRATED
+    )
     rivals = [
         m
         for m in methods
@@ -385,10 +392,16 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     if config.limit:
         dataset = dataset.head(config.limit)
     dataset = subsample_queries(dataset, config.query_stride)
-    submap_of, submap_note = assign_submaps(dataset, config.submap_size)
     output = Path(config.output)
     output.mkdir(parents=True, exist_ok=True)
     cache_dir = config.cache_dir or output / "cache"
+    unreadable = unreadable_images(all_images(dataset), cache_dir)
+    for path, why in unreadable.items():
+        log.warning("skipping %s: %s", path, why)
+    dataset = dataset.without(unreadable)
+    if not dataset.references or not dataset.queries:
+        raise DatasetError(f"{dataset.root}: no readable references or queries left")
+    submap_of, submap_note = assign_submaps(dataset, config.submap_size)
     log.info(
         "%s (%s): %d references, %d queries; %s",
         dataset.name,
@@ -406,6 +419,30 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     first_keypoints: KeypointCache | None = None
     passes: list[PassResult] = []
     calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    retraining: list[RetrainingRow] = []
+
+    def report_so_far(partial: str | None) -> dict[str, Any]:
+        assert first_pass is not None
+        return _report(
+            config,
+            dataset,
+            submap_note,
+            first_pass,
+            methods + global_only,
+            stages,
+            skipped,
+            retraining,
+            unreadable,
+            partial,
+        )
+
+    def checkpoint(next_step: str) -> None:
+        """Write the rows done so far (no plots): a run stopped later keeps them."""
+        if first_pass is not None:
+            report = report_so_far(f"stopped before {next_step}")
+            reporting.write_json(report, output / "report.json")
+            reporting.write_markdown(report, methods + global_only, output / "report.md")
+
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -415,7 +452,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             max_keypoints=config.max_keypoints,
         )
         try:
-            pipeline = FeaturePipeline(preset)
+            pipeline = FeaturePipeline(preset, config.precision)
         except WeightsUnavailable as exc:
             skipped[extractor] = str(exc)
             log.warning("skipping %s: %s", extractor, exc)
@@ -432,17 +469,22 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
         )
-        calibrated = calibrated_methods(
-            dataset,
-            submap_of,
-            extractor,
-            EXTRACTOR_LABELS.get(extractor, extractor),
-            result,
-            alphas=config.alphas,
-            k=config.k,
-            with_global_only=first_pass is None,
-            vectors=calibrated_vectors,
-        )
+        try:
+            calibrated = calibrated_methods(
+                dataset,
+                submap_of,
+                extractor,
+                EXTRACTOR_LABELS.get(extractor, extractor),
+                result,
+                alphas=config.alphas,
+                k=config.k,
+                with_global_only=first_pass is None,
+                vectors=calibrated_vectors,
+            )
+        except ValueError as exc:  # too few references to fit a calibration (impostor pairs)
+            skipped[f"{extractor} calibration"] = str(exc)
+            log.warning("no calibrated rows for %s: %s", extractor, exc)
+            calibrated = []
         uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
         )
@@ -454,10 +496,11 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         passes.append(result)
         if first_pass is None:
             first_pass, first_keypoints = result, keypoints
+        checkpoint("the next extractor's pass")
     if first_pass is None:
         raise RuntimeError(f"no local extractor could run: {skipped}")
     methods += global_only
-    retraining: list[RetrainingRow] = []
+    global_only = []
     if config.retrain_shots:
         extractor = config.extractors[0]
         retraining = retraining_rows(
@@ -471,6 +514,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
         )
         methods += [row.after for row in retraining]
+        checkpoint("verification and baselines")
     if config.verify and first_keypoints is not None:
         extractor_name = first_pass.preset.local.name
         verified, verification_stages = verification_methods(
@@ -486,13 +530,15 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         )
         methods += verified
         stages.update(verification_stages)
+        checkpoint("the baselines")
     if config.sequence:
         bases = []
         rows = {m.name: m for m in methods}
         for result in passes:
             extractor = result.preset.local.name
             calibrated_row = f"loopnet-{extractor}"
-            bases.append((rows[calibrated_row], *calibrated_vectors[calibrated_row]))
+            if calibrated_row in calibrated_vectors:
+                bases.append((rows[calibrated_row], *calibrated_vectors[calibrated_row]))
             bases.append(
                 (
                     rows[f"{calibrated_row}-uncalibrated"],
@@ -514,6 +560,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
                 seed_frames=config.sequence_seed_frames,
             ),
         )
+        checkpoint("the baselines")
     for name in config.baselines:
         method, baseline_stages, similarity = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k
@@ -524,13 +571,33 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             methods += _full_seqslam_methods(
                 similarity, method, dataset, submap_of, config.sequence, config.k
             )
+        checkpoint("the remaining baselines and the plots")
 
+    report = report_so_far(None)
+    _write_final(config, dataset, methods, report)
+    return EvalResult(report, methods, retraining)
+
+
+def _report(
+    config: EvalConfig,
+    dataset: Dataset,
+    submap_note: str,
+    first_pass: PassResult,
+    methods: list[MethodResult],
+    stages: dict[str, dict[str, dict[str, float]]],
+    skipped: dict[str, str],
+    retraining: list[RetrainingRow],
+    unreadable: dict[Path, str],
+    partial: str | None,
+) -> dict[str, Any]:
+    """The report of the rows done so far (``partial`` says what is still missing)."""
     answerable = sum(1 for q in dataset.queries if q.positives)
     tolerance_text = (
         f"±{dataset.tolerance} frames" if dataset.tolerance is not None else dataset.ground_truth
     )
     report: dict[str, Any] = {
         "command": config.command or "run_evaluation(...)",
+        "partial": partial,
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
         "dataset": {
             "name": dataset.name,
@@ -543,6 +610,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             "tolerance": dataset.tolerance,
             "tolerance_text": tolerance_text,
             "excluded": dataset.excluded,
+            "unreadable_images": {str(path): why for path, why in unreadable.items()},
         },
         "protocol": {
             "submaps": submap_note,
@@ -578,6 +646,15 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         "target": _target(methods),
         "retraining": [row.row() for row in retraining],
     }
+    return report
+
+
+def _write_final(
+    config: EvalConfig, dataset: Dataset, methods: list[MethodResult], report: dict[str, Any]
+) -> None:
+    """The plots, then report.json and report.md in full."""
+    output = Path(config.output)
+    tolerance_text = report["dataset"]["tolerance_text"]
     title = f"{dataset.name}: loop-closure precision-recall ({tolerance_text})"
     reporting.plot_pr_curves(methods, title, output / reporting.PR_PLOT)
     report["examples"] = reporting.plot_examples(
@@ -585,7 +662,6 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     )
     reporting.write_json(report, output / "report.json")
     reporting.write_markdown(report, methods, output / "report.md")
-    return EvalResult(report, methods, retraining)
 
 
 def command_line(argv: Sequence[str]) -> str:

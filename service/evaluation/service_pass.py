@@ -73,23 +73,46 @@ class PassResult:
 
 
 def cache_path(cache_dir: Path, dataset: Dataset, pipeline: FeaturePipeline) -> Path:
-    """A cache file named by the dataset, the feature settings and the exact image files."""
-    files = [
-        (str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in all_images(dataset)
-    ]
-    key = json.dumps({"features": pipeline.signature, "files": files}, sort_keys=True)
+    """The dataset's cache file for these feature settings.
+
+    The key is the dataset's folder and the settings, not its list of files: a run on a subset
+    (``--limit``, ``--query-stride``) reads the rows of the files it needs, and each row
+    remembers its file's size and modification time, so a changed file is extracted again.
+    """
+    key = json.dumps(
+        {"features": pipeline.signature.to_json(), "root": str(Path(dataset.root).resolve())},
+        sort_keys=True,
+    )
     digest = hashlib.sha1(key.encode()).hexdigest()[:16]
     local = pipeline.preset.local
     return cache_dir / f"{dataset.name}-{local.name}{local.long_side}-{digest}.npz"
 
 
+def file_stamp(path: Path) -> tuple[int, int]:
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
 @dataclass
 class CachedFeatures:
+    """CNN outputs of image files, one row per file (its path and size/mtime stamp)."""
+
+    paths: np.ndarray  # N resolved paths (unicode)
+    stamps: np.ndarray  # N x 2: size, mtime_ns
     local: np.ndarray
     global_: np.ndarray
     keypoints: np.ndarray
     image_size: np.ndarray
     stage_ms: np.ndarray  # N x len(EXTRACTION_STAGES)
+
+    def rows(self) -> dict[Path, int]:
+        """Row of every file whose stamp still matches the file on disk."""
+        found = {}
+        for i, (name, stamp) in enumerate(zip(self.paths, self.stamps, strict=True)):
+            path = Path(str(name))
+            if path.is_file() and file_stamp(path) == tuple(int(v) for v in stamp):
+                found[path] = i
+        return found
 
     def frame(self, i: int, descriptor_dim: int) -> tuple[FrameFeatures, float]:
         """The frame's vectors as the pipeline gave them; keypoints themselves are not cached."""
@@ -103,28 +126,41 @@ class CachedFeatures:
         )
         return features, decode_ms
 
+    def merged(self, newer: CachedFeatures) -> CachedFeatures:
+        """This cache's rows for other files plus every row of ``newer``."""
+        replaced = set(newer.paths.tolist())
+        keep = np.array([p not in replaced for p in self.paths.tolist()], dtype=bool)
+        return CachedFeatures(
+            **{
+                name: np.concatenate([getattr(self, name)[keep], getattr(newer, name)])
+                for name in CACHE_ARRAYS
+            }
+        )
+
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(
-            tmp,
-            local=self.local,
-            global_=self.global_,
-            keypoints=self.keypoints,
-            image_size=self.image_size,
-            stage_ms=self.stage_ms,
-        )
+        np.savez_compressed(tmp, **{name: getattr(self, name) for name in CACHE_ARRAYS})
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: Path) -> CachedFeatures:
+    def load(cls, path: Path) -> CachedFeatures | None:
+        """The cache at ``path``; None when it is missing or of an older format."""
+        if not path.is_file():
+            return None
         with np.load(path) as data:
-            return cls(**{name: data[name] for name in data.files})
+            if set(data.files) != set(CACHE_ARRAYS):
+                return None
+            return cls(**{name: data[name] for name in CACHE_ARRAYS})
+
+
+CACHE_ARRAYS = ("paths", "stamps", "local", "global_", "keypoints", "image_size", "stage_ms")
 
 
 class LocalFeatureCache:
-    """Every frame's keypoints, descriptors (float16, as the feature store keeps them) and
-    scores, beside the vector cache: calibration needs the descriptors themselves."""
+    """Each file's keypoints, descriptors (float16, as the feature store keeps them) and
+    scores, by resolved path, beside the vector cache: calibration needs the descriptors
+    themselves."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -133,27 +169,34 @@ class LocalFeatureCache:
     def for_vectors(vector_cache: Path) -> LocalFeatureCache:
         return LocalFeatureCache(vector_cache.with_name(vector_cache.stem + "-local.npz"))
 
-    def load(self) -> list[LocalFeatures] | None:
+    def load(self) -> dict[Path, LocalFeatures]:
+        """The cached files' features; empty when the cache is missing or of an older format."""
         if not self.path.is_file():
-            return None
+            return {}
         with np.load(self.path) as data:
-            offsets = data["offsets"]
+            if "paths" not in data.files:
+                return {}
+            paths, offsets = data["paths"], data["offsets"]
             keypoints, descriptors, scores = data["keypoints"], data["descriptors"], data["scores"]
-        return [
-            LocalFeatures(keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b])
-            for a, b in zip(offsets[:-1], offsets[1:], strict=True)
-        ]
+        return {
+            Path(str(name)): LocalFeatures(
+                keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b]
+            )
+            for name, a, b in zip(paths, offsets[:-1], offsets[1:], strict=True)
+        }
 
-    def save(self, frames: Sequence[LocalFeatures]) -> None:
+    def save(self, frames: dict[Path, LocalFeatures]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        offsets = np.cumsum([0, *(f.count for f in frames)])
+        values = list(frames.values())
+        offsets = np.cumsum([0, *(f.count for f in values)])
         tmp = self.path.with_name(self.path.name + ".tmp.npz")
         np.savez(
             tmp,
+            paths=np.array([str(p) for p in frames], dtype=np.str_),
             offsets=offsets,
-            keypoints=np.concatenate([f.keypoints for f in frames]).astype(np.float32),
-            descriptors=np.concatenate([f.descriptors for f in frames]).astype(np.float16),
-            scores=np.concatenate([f.scores for f in frames]).astype(np.float32),
+            keypoints=np.concatenate([f.keypoints for f in values]).astype(np.float32),
+            descriptors=np.concatenate([f.descriptors for f in values]).astype(np.float16),
+            scores=np.concatenate([f.scores for f in values]).astype(np.float32),
         )
         tmp.replace(self.path)
 
@@ -186,18 +229,21 @@ def _frames(
     service: AtlasService,
     paths: Sequence[Path],
     cached: CachedFeatures | None,
-    local: list[LocalFeatures] | None,
+    rows: dict[Path, int],
+    local: dict[Path, LocalFeatures],
     desc: str,
-) -> Iterator[tuple[FrameFeatures, float]]:
+) -> Iterator[tuple[FrameFeatures, float, bool]]:
+    """Each image's features and decode time, from the cache where it has the file (its
+    keypoints and descriptors from ``local``)."""
     dim = service.pipeline.local.descriptor_dim
-    for i, path in enumerate(tqdm(paths, desc=desc, unit="img", leave=False)):
-        if cached is None:
-            yield service.extract(path.read_bytes())
-            continue
-        features, decode_ms = cached.frame(i, dim)
-        if local is not None:
-            features.local = local[i]
-        yield features, decode_ms
+    for path in tqdm(paths, desc=desc, unit="img", leave=False):
+        row = rows.get(path.resolve())
+        if cached is not None and row is not None:
+            features, decode_ms = cached.frame(row, dim)
+            features.local = local.get(path.resolve(), features.local)
+            yield features, decode_ms, True
+        else:
+            yield (*service.extract(path.read_bytes()), False)
 
 
 def run_service_pass(
@@ -216,15 +262,16 @@ def run_service_pass(
     keypoints, which the vector cache does not hold).
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
-    cached = CachedFeatures.load(path) if path is not None and path.is_file() else None
+    cached = CachedFeatures.load(path) if path is not None else None
+    rows = cached.rows() if cached is not None else {}
     images = list(all_images(dataset))
+    from_cache: list[bool] = []
     local_cache = LocalFeatureCache.for_vectors(path) if path is not None else None
-    cached_local = local_cache.load() if local_cache is not None else None
-    if cached is not None and cached_local is None:
-        cached_local = extract_local_features(pipeline, images, f"{label} keypoints")
-        if local_cache is not None:
-            local_cache.save(cached_local)
-    fresh_local: list[LocalFeatures] = []
+    cached_local = local_cache.load() if local_cache is not None else {}
+    missing = [p for p in images if p.resolve() in rows and p.resolve() not in cached_local]
+    if missing:  # vectors cached by an older run: extract only the keypoints
+        extracted = extract_local_features(pipeline, missing, f"{label} keypoints")
+        cached_local.update(zip((p.resolve() for p in missing), extracted, strict=True))
     stored_references: CalibrationInputs | None = None
     n_refs = len(dataset.references)
     local_vectors, global_vectors, keypoints, sizes, extraction_ms = [], [], [], [], []
@@ -245,17 +292,22 @@ def run_service_pass(
         for submap in sorted(set(submap_of)):
             service.create_submap(ATLAS, submap_name(submap))
         frame_to_reference: dict[int, int] = {}
-        frames = _frames(service, images, cached, cached_local, f"{label}: {dataset.name}")
-        for i, (features, decode_ms) in enumerate(frames):
-            if on_features is not None and cached is None:
+        frames = _frames(service, images, cached, rows, cached_local, f"{label}: {dataset.name}")
+        for i, (features, decode_ms, hit) in enumerate(frames):
+            from_cache.append(hit)
+            if on_features is not None and not hit:
                 on_features(images[i], features)
-            if cached is None:
-                fresh_local.append(_as_stored(features.local))
+            if not hit:
+                cached_local[images[i].resolve()] = _as_stored(features.local)
             if i == n_refs:
                 stored_references = _read_back(service)
             local_vectors.append(features.local_vector)
             global_vectors.append(features.global_vector)
-            keypoints.append(features.local.count)
+            keypoints.append(
+                int(cached.keypoints[rows[images[i].resolve()]])
+                if hit and cached is not None
+                else features.local.count
+            )
             sizes.append(features.image_size)
             stages = [decode_ms, *(features.timings_ms[s] for s in EXTRACTION_STAGES[1:])]
             extraction_ms.append(stages)
@@ -285,16 +337,20 @@ def run_service_pass(
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
-    if cached is None and path is not None:
-        CachedFeatures(
+    all_cached = bool(from_cache) and all(from_cache)
+    if path is not None and not all_cached:
+        fresh = CachedFeatures(
+            paths=np.array([str(p.resolve()) for p in images]),
+            stamps=np.array([file_stamp(p) for p in images], np.int64),
             local=np.stack(local_vectors),
             global_=np.stack(global_vectors),
             keypoints=np.array(keypoints, np.int64),
             image_size=np.array(sizes, np.int64),
             stage_ms=np.array(extraction_ms, np.float64),
-        ).save(path)
-        if local_cache is not None:
-            local_cache.save(fresh_local)
+        )
+        (cached.merged(fresh) if cached is not None else fresh).save(path)
+    if local_cache is not None and (missing or not all_cached):
+        local_cache.save(cached_local)
     local_all, global_all = np.stack(local_vectors), np.stack(global_vectors)
     return PassResult(
         preset=pipeline.preset,
@@ -303,13 +359,11 @@ def run_service_pass(
         query_vectors=(local_all[n_refs:], global_all[n_refs:]),
         stage_ms=stage_ms,
         query_ms=query_ms,
-        keypoints=np.array(keypoints, np.int64)
-        if cached is None
-        else cached.keypoints.astype(np.int64),
+        keypoints=np.array(keypoints, np.int64),
         image_sizes=sizes,
-        cached=cached is not None,
+        cached=all_cached,
         threshold=threshold,
-        signature=pipeline.signature,
+        signature=pipeline.signature.to_json(),
         stored_references=stored_references,
         query_local=query_local,
     )

@@ -52,9 +52,16 @@ def subsample_queries(dataset: Dataset, stride: int) -> Dataset:
         queries=kept,
         excluded=[
             *dataset.excluded,
-            f"query subsample: every {stride}th query ({len(kept)} of {len(dataset.queries)})",
+            f"query subsample: every {ordinal(stride)} query ({len(kept)} of "
+            f"{len(dataset.queries)})",
         ],
     )
+
+
+def ordinal(n: int) -> str:
+    """``1st``, ``2nd``, ``3rd``, ``4th``, ``11th``, ``12th``, ``13th``, ``21st`` ..."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
 
 
 class KeypointCache:

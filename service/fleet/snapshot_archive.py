@@ -37,6 +37,11 @@ REQUIRED_MEMBERS = frozenset({"manifest.json", *ROW_MEMBERS, "features.npz", "in
 WEIGHTS_MEMBER = re.compile(r"^models/v[1-9][0-9]{0,8}\.pt$")
 
 
+def weights_member(version: int) -> str:
+    """The archive member holding a trained version's weights (what ``WEIGHTS_MEMBER`` matches)."""
+    return f"models/v{version}.pt"
+
+
 def _migrations() -> Any:
     """Alembic's view of the migrations (imported here: settings import this module, and
     alembic is slow to import)."""
@@ -102,8 +107,15 @@ class Archive:
     members: dict[str, bytes]  # every member but the manifest, checksums verified
 
 
+OPTIONAL_MEMBERS = frozenset({"thumbnails.npz"})  # absent from archives written before them
+
+
 def _allowed(name: str) -> bool:
-    return name in REQUIRED_MEMBERS or WEIGHTS_MEMBER.match(name) is not None
+    return (
+        name in REQUIRED_MEMBERS
+        or name in OPTIONAL_MEMBERS
+        or WEIGHTS_MEMBER.match(name) is not None
+    )
 
 
 def _read_members(path: Path, limits: ArchiveLimits) -> dict[str, bytes]:

@@ -23,16 +23,14 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import model_versions as models_store
+from service.atlas import thumbnails
 from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.fleet.snapshot_archive import known_revisions, read_archive
 from service.fleet.snapshot_rows import DecodedSnapshot, FrameRow, decode_snapshot
 from service.index import AtlasIndex
-from service.ml.backbones.registry import backbone_spec
-from service.ml.local_extractors import LOCAL_EXTRACTORS
 from service.ml.pipeline import embed_vectors
-from service.ml.presets import preset_signature
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Atlas, Frame, FrameFeatureRow, LoopClosure, ModelVersion, Submap
@@ -64,23 +62,19 @@ def restore_atlas(
             "which this LoopNet does not know: restore it with a newer LoopNet"
         )
     preset = settings.preset()
-    expected = preset_signature(preset)
-    if archive.manifest.feature_signature != expected:
+    expected = preset.signature
+    if not expected.matches(archive.manifest.feature_signature):
         raise Conflict(
             f"the snapshot holds features {archive.manifest.feature_signature}, but this "
-            f"deployment extracts {expected}; restore it on a service running the snapshot's "
-            "settings"
+            f"deployment extracts {expected.to_json()}; restore it on a service running the "
+            "snapshot's settings"
         )
     name = validate_name("atlas", name or archive.manifest.atlas)
     with sessions() as session:
         if session.scalar(select(Atlas.id).where(Atlas.name == name)) is not None:
             raise Conflict(f"atlas '{name}' already exists")
-    feature_dims = (
-        LOCAL_EXTRACTORS[preset.local.name].descriptor_dim,
-        backbone_spec(preset.backbone.name).dim,
-    )
-    snapshot = decode_snapshot(archive, limits, feature_dims)
-    if snapshot.atlas.feature_signature != expected:
+    snapshot = decode_snapshot(archive, limits, expected.dims)
+    if not expected.matches(snapshot.atlas.feature_signature):
         raise InvalidInput("the snapshot's atlas.json disagrees with its manifest's features")
     vectors = _embeddings(snapshot)
     written: list[Path] = []
@@ -91,6 +85,9 @@ def restore_atlas(
         _write_files(settings, atlas_id, snapshot, vectors, submap_map, frame_map, written)
         with transaction(sessions) as session:
             _write_loop_closures(session, atlas_id, snapshot, submap_map, frame_map)
+            thumbnails.restore_member(
+                session, archive.members.get(thumbnails.SNAPSHOT_MEMBER), frame_map
+            )
             session.execute(update(Atlas).where(Atlas.id == atlas_id).values(name=name))
     except BaseException as exc:
         _undo(settings, sessions, atlas_id, written)
@@ -145,8 +142,9 @@ def _write_atlas(
             row = version.row
             weights_path = None
             if row.weights is not None:
-                target = models_store.weights_file(settings.models_dir, atlas.id, row.version)
-                weights_path = str(target.relative_to(settings.models_dir))
+                weights_path = models_store.row_weights_path(
+                    settings.models_dir, atlas.id, row.version
+                )
             session.add(
                 ModelVersion(
                     atlas_id=atlas.id,
@@ -265,6 +263,9 @@ def _write_loop_closures(
                 "atlas_id": atlas_id,
                 "frame_id": frame_map[c.frame_id],
                 "submap_id": submap_map[c.submap_id],
+                "query_frame_id": (
+                    frame_map[c.query_frame_id] if c.query_frame_id is not None else None
+                ),
             }
             for c in snapshot.loop_closures
         ],
@@ -279,9 +280,7 @@ def _undo(
         file.unlink(missing_ok=True)
     if atlas_id is None:
         return
-    shutil.rmtree(
-        models_store.weights_file(settings.models_dir, atlas_id, 1).parent, ignore_errors=True
-    )
+    shutil.rmtree(models_store.atlas_models_dir(settings.models_dir, atlas_id), ignore_errors=True)
     try:
         with transaction(sessions) as session:
             session.execute(delete(Atlas).where(Atlas.id == atlas_id))

@@ -19,13 +19,20 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.atlas.names import NAME_PATTERN
 from service.errors import InvalidInput
-from service.fleet.snapshot_archive import WEIGHTS_MEMBER, Archive, ArchiveLimits, first_error
+from service.fleet.snapshot_archive import (
+    WEIGHTS_MEMBER,
+    Archive,
+    ArchiveLimits,
+    first_error,
+    weights_member,
+)
 from service.fleet.snapshot_features import MAX_DIM, Features, decode_features
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import HeadsConfig, LoopNetHeads
 
-NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"  # the API's pattern for atlases, submaps, robots
+NAME = NAME_PATTERN.pattern  # the API's pattern for atlases, submaps, robots
 
 Name = Annotated[str, Field(pattern=NAME)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -107,6 +114,13 @@ class ModelVersionRow(_Row):
     weights: str | None  # required key: null for untrained heads rebuilt from the config
 
 
+class RelativePoseRow(_Row):
+    """A verified closure's relative pose (see :class:`service.ml.verification.RelativePose`)."""
+
+    rotation: tuple[Finite, Finite, Finite, Finite]
+    translation: tuple[Finite, Finite, Finite]
+
+
 class LoopClosureRow(_Row):
     robot_id: Name
     frame_id: RowId
@@ -116,6 +130,9 @@ class LoopClosureRow(_Row):
     model_version: int = Field(ge=1)
     source: Literal["query", "observe"]
     created_at: datetime
+    inliers: int | None = Field(None, ge=0)  # absent from archives written before them
+    relative_pose: RelativePoseRow | None = None
+    query_frame_id: RowId | None = None  # the observing frame (absent: a query, or older)
 
 
 RowT = TypeVar("RowT", bound=BaseModel)
@@ -207,7 +224,7 @@ def _versions(archive: Archive, features: Features) -> tuple[list[Version], Vers
                 raise InvalidInput(f"the snapshot's trained version {row.version} has no weights")
             heads = LoopNetHeads(_heads_config(heads_row)).eval()
         else:
-            if row.weights != f"models/v{row.version}.pt":
+            if row.weights != weights_member(row.version):
                 raise InvalidInput(f"the snapshot's version {row.version} names other weights")
             heads = _load_weights(row.weights, archive.members[row.weights], heads_row)
         versions.append(Version(row, heads))
@@ -244,7 +261,11 @@ def decode_snapshot(
             raise InvalidInput(f"{where}: {exc}") from exc
         by_id[frame.id] = frame
     for number, closure in enumerate(closures, 1):
-        if closure.frame_id not in by_id or closure.submap_id not in known_submaps:
+        if (
+            closure.frame_id not in by_id
+            or closure.submap_id not in known_submaps
+            or (closure.query_frame_id is not None and closure.query_frame_id not in by_id)
+        ):
             raise InvalidInput(
                 f"the snapshot's loop_closures.jsonl, line {number}: unknown frame or submap"
             )

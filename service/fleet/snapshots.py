@@ -8,6 +8,7 @@ The archive is a tar file:
   ``loop_closures.jsonl``: the rows, one JSON object a line (ids are the source's; restore maps
   them to new ones);
 - ``features.npz``: every frame's stored features as arrays (ragged keypoints by offsets);
+- ``thumbnails.npz``: the frames' thumbnails (absent from archives written before them);
 - ``models/v<N>.pt``: trained heads; ``index.faiss``: the active version's FAISS index.
 
 This module writes it; :mod:`service.fleet.snapshot_restore` reads it back without trusting it
@@ -32,9 +33,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__
 from service.atlas import model_versions as models_store
+from service.atlas import thumbnails
 from service.config import Settings
 from service.errors import Conflict
-from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision
+from service.fleet.snapshot_archive import FORMAT, FORMAT_VERSION, head_revision, weights_member
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
 from service.storage import repository as repo
@@ -124,10 +126,9 @@ def export_atlas(
         for version in versions:
             row = _row(version, skip=("id", "atlas_id", "weights_path"))
             row["weights"] = None
-            if version.weights_path is not None:
-                weights = Path(version.weights_path)
-                weights = weights if weights.is_absolute() else settings.models_dir / weights
-                row["weights"] = f"models/v{version.version}.pt"
+            weights = models_store.weights_of(version, settings.models_dir)
+            if weights is not None:
+                row["weights"] = weights_member(version.version)
                 members[row["weights"]] = weights.read_bytes()
             version_rows.append(row)
         members["model_versions.jsonl"] = _jsonl(version_rows)
@@ -136,6 +137,7 @@ def export_atlas(
         index = AtlasIndex(heads.config.fused_dim)
         add_stored_frames(session, atlas.id, heads, index)
         members["index.faiss"] = index.to_bytes()
+        members[thumbnails.SNAPSHOT_MEMBER] = thumbnails.export_member(session, atlas.id)
         manifest = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,

@@ -2,6 +2,7 @@
 
 The API process enqueues with it; ``loopnet worker`` consumes with it. Both build it from the
 same settings, so they agree on the storage (a SQLite file in the data directory, or Redis).
+Messages are JSON carrying one job id (:mod:`service.jobs.messages`), never pickles.
 """
 
 from __future__ import annotations
@@ -13,10 +14,26 @@ from typing import Any
 from huey import Huey, RedisHuey, SqliteHuey
 
 from service.config import Settings
+from service.jobs.messages import JobIdSerializer, RejectedMessage
+from service.storage.db import create_private_file, make_private_dir
 
 log = logging.getLogger(__name__)
 
 TASK_NAME = "loopnet.run_job"
+
+
+class _NoExecutedLines(logging.Filter):
+    """Drop Huey's "Executing"/"executed in" lines: the job runner logs each job's id, atlas and
+    outcome, and Huey would call a cancelled or skipped job "executed"."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (
+            isinstance(record.msg, str)
+            and (record.msg.startswith("Executing ") or " executed in " in record.msg)
+        )
+
+
+_HUEY_LOG_FILTER = _NoExecutedLines()
 
 
 class Queue:
@@ -25,8 +42,12 @@ class Queue:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.huey: Huey = make_huey(settings)
+        logging.getLogger("huey").addFilter(_HUEY_LOG_FILTER)  # the same filter once only
         self._runner: Any = None
-        self.run_job: Callable[[int], Any] = self.huey.task(name=TASK_NAME)(self._run_job)
+        task = self.huey.task(name=TASK_NAME)(self._run_job)
+        self.run_job: Callable[[int], Any] = task
+        # the serializer admits only this task, under the name Huey's registry gives it
+        self.huey.serializer.task_name = f"{task.task_class.__module__}.{task.task_class.__name__}"
 
     def _run_job(self, job_id: int) -> None:
         """Executed in the worker: the job runner is built on first use, once per process."""
@@ -43,15 +64,20 @@ class Queue:
 
     def pending_job_ids(self) -> set[int]:
         """Ids of the jobs waiting in the queue storage (not those a worker has taken)."""
-        return {
-            int(task.args[0])
-            for task in self.huey.pending()
-            if task.name == TASK_NAME and task.args
-        }
+        ids = set()
+        for data in self.huey.storage.enqueued_items():
+            try:
+                task = self.huey.deserialize_task(data)
+            except RejectedMessage:
+                continue  # logged; the worker drops it when it reaches the head of the queue
+            ids.add(int(task.args[0]))
+        return ids
 
 
 def make_huey(settings: Settings) -> Huey:
+    serializer = JobIdSerializer(TASK_NAME)  # Queue sets the registered name
     if settings.redis_url:
-        return RedisHuey(settings.queue_name, url=settings.redis_url)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    return SqliteHuey(settings.queue_name, filename=str(settings.queue_path))
+        return RedisHuey(settings.queue_name, url=settings.redis_url, serializer=serializer)
+    make_private_dir(settings.data_dir)
+    create_private_file(settings.queue_path)
+    return SqliteHuey(settings.queue_name, filename=str(settings.queue_path), serializer=serializer)

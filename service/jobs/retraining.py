@@ -27,7 +27,7 @@ from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.feature_store import load_stored_vectors
-from service.storage.models import JobStatus
+from service.storage.models import Atlas, Job, JobStatus
 
 log = logging.getLogger(__name__)
 
@@ -42,14 +42,21 @@ class JobRunner:
         self.sessions = sessions
 
     def run(self, job_id: int) -> None:
+        """Run the job and log one line with its id, atlas and outcome."""
         with transaction(self.sessions) as session:
             job = jobs.start_job(session, job_id=job_id)
             if job is None:
-                log.info("job %d is not queued any more; skipped", job_id)
+                found = session.get(Job, job_id)
+                status = found.status if found else "unknown"
+                log.info("job %d: not run, it is %s", job_id, status)
                 return
             kind, atlas_id, params = job.kind, job.atlas_id, dict(job.params)
+            atlas = session.get(Atlas, atlas_id)
+            atlas_name = atlas.name if atlas else f"#{atlas_id}"
+        log.info("job %d (%s of atlas '%s'): started", job_id, kind, atlas_name)
         if kind != "retrain":
             self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
+            log.error("job %d (atlas '%s'): failed, unknown kind %r", job_id, atlas_name, kind)
             return
         files: list[Any] = []
         try:
@@ -57,14 +64,20 @@ class JobRunner:
         except TrainingCancelled as exc:
             self._cleanup(files)
             self._finish(job_id, JobStatus.CANCELLED, str(exc))
+            log.info("job %d (atlas '%s'): cancelled (%s)", job_id, atlas_name, exc)
         except Exception as exc:
-            log.exception("job %d failed", job_id)
+            log.exception("job %d (atlas '%s'): failed", job_id, atlas_name)
             self._cleanup(files)
             self._finish(
                 job_id, JobStatus.FAILED, f"{type(exc).__name__}: {exc}", traceback.format_exc()
             )
         else:
-            log.info("job %d: model version %d of atlas %d is active", job_id, version, atlas_id)
+            log.info(
+                "job %d (atlas '%s'): succeeded, model version %d is active",
+                job_id,
+                atlas_name,
+                version,
+            )
 
     def _progress(self, job_id: int, percent: float, message: str) -> bool:
         with transaction(self.sessions) as session:
@@ -83,12 +96,7 @@ class JobRunner:
             path.unlink(missing_ok=True)
 
     def _retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
-        config = TrainingConfig(
-            **{
-                **params,
-                "train": tuple(params.get("train", ("fusion", "similarity", "classifier"))),
-            }
-        )
+        config = TrainingConfig(**params)
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:
             active = repo.active_model_version(session, atlas_id=atlas_id)
@@ -96,6 +104,7 @@ class JobRunner:
             stored = load_stored_vectors(session, atlas_id)
         if len(stored) == 0:
             raise ValueError("the atlas has no frames to train on")
+        config.check_fits(base)
         base = HeadsConfig(
             local_dim=base.local_dim,
             global_dim=base.global_dim,
@@ -144,6 +153,8 @@ class JobRunner:
                     f"re-embedding: {done}/{len(stored)} frames",
                 )
 
+        # fp32 like ingest, restore and reconcile: a frame's vector must not depend on which path
+        # embedded it (bf16 re-embedding is in the benchmarks, not in the service)
         with self.sessions() as session:
             add_stored_frames(session, atlas_id, result.heads, index, progress=on_chunk)
         reembed_seconds = time.perf_counter() - started
@@ -168,7 +179,9 @@ class JobRunner:
                     result.heads.config, trained=True, training=asdict(config), job_id=job_id
                 ).to_json(),
                 metrics=metrics,
-                weights_path=str(weights.relative_to(self.settings.models_dir)),
+                weights_path=models_store.row_weights_path(
+                    self.settings.models_dir, atlas_id, version
+                ),
                 activate=True,
             )
             jobs.finish_job(

@@ -1,16 +1,19 @@
 """Submitting, listing and cancelling jobs: the rules the API and the CLI share.
 
-A job is validated (its parameters build a training config; the atlas has frames in two
-submaps), created, then enqueued; when the queue is unreachable the job is failed at once so
-nothing waits forever for a worker that will never see it.
+A job is validated (its parameters build a training config whose ``embed_dim`` the atlas's
+active heads can fill; the atlas has frames in two submaps), created, then enqueued; when the
+queue is unreachable the job is failed at once so nothing waits forever for a worker that will
+never see it.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+from pydantic import ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas.model_versions import VersionConfig
 from service.errors import InvalidInput, NotReady
 from service.jobs.queue import Queue
 from service.ml.training import TrainingConfig
@@ -20,10 +23,22 @@ from service.storage.db import transaction
 from service.storage.models import Job, JobStatus
 
 
-def check_params(params: dict[str, Any]) -> None:
+def check_params(params: dict[str, Any]) -> TrainingConfig:
     """Refuse parameters the training config would refuse (422 before anything is written)."""
     try:
-        TrainingConfig(**{**params, "train": tuple(params["train"])})
+        return TrainingConfig(**params)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors()
+        )
+        raise InvalidInput(f"invalid job parameters: {problems}") from exc
+
+
+def check_fits(session: Session, config: TrainingConfig, *, atlas_id: int) -> None:
+    """Refuse a config the worker would fail on with the atlas's active heads (422 at submit)."""
+    active = repo.active_model_version(session, atlas_id=atlas_id)
+    try:
+        config.check_fits(VersionConfig.of(active).heads)
     except ValueError as exc:
         raise InvalidInput(str(exc)) from exc
 
@@ -32,9 +47,10 @@ def submit_job(
     sessions: sessionmaker[Session], queue: Queue, *, atlas: str, kind: str, params: dict[str, Any]
 ) -> Job:
     """Validate, create and enqueue a job; returns it as it stands once enqueued."""
-    check_params(params)
+    config = check_params(params)
     with transaction(sessions) as session:
         found = repo.get_atlas(session, name=atlas)
+        check_fits(session, config, atlas_id=found.id)
         populated = repo.count_populated_submaps(session, atlas_id=found.id)
         if populated < 2:
             raise InvalidInput(

@@ -8,7 +8,8 @@ import numpy as np
 def l2_normalize(x: np.ndarray, axis: int = -1, eps: float = 1e-12) -> np.ndarray:
     """Rows divided by their L2 norm; all-zero rows stay zero (never NaN)."""
     norm = np.linalg.norm(x, axis=axis, keepdims=True)
-    return (x / np.maximum(norm, eps)).astype(np.float32, copy=False)
+    unit: np.ndarray = (x / np.maximum(norm, eps)).astype(np.float32, copy=False)
+    return unit
 
 
 def aggregate_descriptors(descriptors: np.ndarray, scores: np.ndarray) -> np.ndarray:

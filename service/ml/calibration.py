@@ -207,7 +207,10 @@ class Calibration:
 
     def embed(self, local: LocalFeatures, global_vector: np.ndarray) -> np.ndarray:
         """The fused unit embedding of one frame (ingest and query)."""
-        return self.embed_many([local.descriptors], [local.scores], global_vector[None])[0]
+        row: np.ndarray = self.embed_many([local.descriptors], [local.scores], global_vector[None])[
+            0
+        ]
+        return row
 
     def score(self, cosines: np.ndarray | float) -> np.ndarray:
         """The calibrated score of fused cosines (see :mod:`service.ml.impostors`)."""

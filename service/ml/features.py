@@ -55,6 +55,7 @@ class FrameFeatures:
         local_vector: ``D`` float32, the aggregated, L2-normalised local descriptor.
         global_vector: ``C`` float32, the L2-normalised backbone vector.
         image_size: (width, height) of the decoded image.
+        thumbnail: a small JPEG of the image (service/ml/thumbnails.py), when made at decode.
     """
 
     local: LocalFeatures
@@ -62,3 +63,4 @@ class FrameFeatures:
     global_vector: np.ndarray
     image_size: tuple[int, int]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    thumbnail: bytes | None = None

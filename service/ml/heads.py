@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+DEFAULT_ALPHA = 0.7
+
 
 @dataclass(frozen=True)
 class HeadsConfig:
@@ -32,7 +34,7 @@ class HeadsConfig:
 
     local_dim: int
     global_dim: int
-    alpha: float = 0.7
+    alpha: float = DEFAULT_ALPHA
     hidden_dim: int = 256
     # None: the fused space is D and R side by side (block identities, the untrained model).
     embed_dim: int | None = None
@@ -67,8 +69,9 @@ class Fusion(nn.Module):
             self.project_global.weight.copy_(block[:, config.local_dim :])
 
     def forward(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
-        mixed = self.alpha * self.project_local(local)
-        return mixed + (1 - self.alpha) * self.project_global(global_) + self.bias
+        projected_local: torch.Tensor = self.project_local(local)
+        projected_global: torch.Tensor = self.project_global(global_)
+        return self.alpha * projected_local + (1 - self.alpha) * projected_global + self.bias
 
 
 class SimilarityHead(nn.Module):
@@ -98,7 +101,8 @@ class ClassificationHead(nn.Module):
         self.linear = nn.Linear(config.fused_dim, num_classes)
 
     def forward(self, fused: torch.Tensor) -> torch.Tensor:
-        return self.linear(F.normalize(fused, dim=-1))
+        logits: torch.Tensor = self.linear(F.normalize(fused, dim=-1))
+        return logits
 
 
 @dataclass
@@ -130,13 +134,15 @@ class LoopNetHeads(nn.Module):
 
     def embed(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
         """``B x local_dim, B x global_dim -> B x fused_dim`` L2-normalised embeddings."""
-        return self.similarity(self.fusion(local, global_))
+        embedded: torch.Tensor = self.similarity(self.fusion(local, global_))
+        return embedded
 
     def classify(self, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
         """``B x n_submaps`` logits; raises if this model version has no classifier."""
         if self.classifier is None:
             raise RuntimeError("this model version has no trained classification head")
-        return self.classifier(self.fusion(local, global_))
+        logits: torch.Tensor = self.classifier(self.fusion(local, global_))
+        return logits
 
     @torch.inference_mode()
     def predict_submap(self, local: torch.Tensor, global_: torch.Tensor) -> SubmapPrediction | None:

@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import struct
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -17,19 +16,13 @@ import torch.nn.functional as F
 from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
 
 from service.errors import ImageTooLarge, InvalidImage
+from service.ml.image_limits import ImageLimits
 
 ImageFile.LOAD_TRUNCATED_IMAGES = False
-SUPPORTED_FORMATS = ("JPEG", "PNG", "WEBP")
+# MPO: the multi-picture JPEG many phone cameras write; its first picture is the photo.
+SUPPORTED_FORMATS = ("JPEG", "MPO", "PNG", "WEBP")
 # What Pillow raises on corrupt input, at open and at decode (found by fuzzing the decoder).
 CORRUPT_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)
-
-
-@dataclass(frozen=True)
-class ImageLimits:
-    """Upper bounds on an upload, checked before decoding the pixels."""
-
-    max_bytes: int = 20 * 1024 * 1024
-    max_pixels: int = 40_000_000
 
 
 def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
@@ -40,6 +33,7 @@ def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
         ImageTooLarge: more bytes or pixels than ``limits`` allow.
     """
     limits = limits or ImageLimits()
+    too_many_pixels = f"the image has more pixels than {limits.pixels_setting}={limits.max_pixels}"
     if not data:
         raise InvalidImage("the uploaded file is empty")
     if len(data) > limits.max_bytes:
@@ -51,7 +45,7 @@ def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
     except UnidentifiedImageError as exc:
         raise InvalidImage("the upload is not a JPEG, PNG or WebP image") from exc
     except (Image.DecompressionBombWarning, Image.DecompressionBombError) as exc:
-        raise ImageTooLarge(f"the image has too many pixels: {exc}") from exc
+        raise ImageTooLarge(too_many_pixels) from exc
     except CORRUPT_IMAGE_ERRORS as exc:
         raise InvalidImage(
             f"the image header could not be read (truncated or corrupt): {exc}"
@@ -59,19 +53,24 @@ def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
     if image.format not in SUPPORTED_FORMATS:
         raise InvalidImage(f"image format {image.format} is not supported; send JPEG, PNG or WebP")
     width, height = image.size
-    if width < 1 or height < 1:
-        raise InvalidImage("the image has no pixels")
     if width * height > limits.max_pixels:
-        raise ImageTooLarge(
-            f"the image is {width}x{height} = {width * height} pixels; "
-            f"the limit is {limits.max_pixels}"
-        )
+        raise ImageTooLarge(f"{too_many_pixels}: it is {width}x{height} = {width * height} pixels")
+    _check_shape(width, height, limits)
     try:
         image.load()
         rgb = (ImageOps.exif_transpose(image) or image).convert("RGB")
     except CORRUPT_IMAGE_ERRORS as exc:
         raise InvalidImage(f"the image could not be decoded (truncated or corrupt): {exc}") from exc
     return np.asarray(rgb, dtype=np.uint8).copy()
+
+
+def _check_shape(width: int, height: int, limits: ImageLimits) -> None:
+    short, long = sorted((width, height))
+    if short < limits.min_side or long > limits.max_aspect * short:
+        raise InvalidImage(
+            f"the image is {width}x{height}; it needs at least {limits.min_side} pixels on each "
+            f"side and a long side at most {limits.max_aspect:g} times the short one"
+        )
 
 
 def to_tensor(rgb: np.ndarray) -> torch.Tensor:

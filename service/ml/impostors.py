@@ -121,7 +121,8 @@ class ImpostorModel:
         tail = -np.log10(self.tail_fraction) + (c - self.tail_start) / (
             self.tail_scale * np.log(10.0)
         )
-        return np.maximum(np.where(c >= self.tail_start, tail, body), 0.0)
+        levels: np.ndarray = np.maximum(np.where(c >= self.tail_start, tail, body), 0.0)
+        return levels
 
     def state(self) -> dict[str, np.ndarray]:
         return {

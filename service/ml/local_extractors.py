@@ -6,6 +6,7 @@ image's pixel coordinates, so stored keypoints serve geometric verification dire
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -15,6 +16,7 @@ import torch
 from service.ml import weights
 from service.ml.features import LocalFeatures
 from service.ml.images import resize_long_side, to_tensor
+from service.ml.precision import Precision, optimise
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,8 @@ class LocalExtractor(Protocol):
 
     def extract(self, rgb: np.ndarray) -> LocalFeatures: ...
 
+    def extract_batch(self, rgbs: list[np.ndarray]) -> list[LocalFeatures]: ...
+
 
 def to_decoded_pixels(
     keypoints: np.ndarray, working_size: tuple[int, int], decoded_size: tuple[int, int]
@@ -58,7 +62,7 @@ class DiskExtractor:
 
     descriptor_dim = 128
 
-    def __init__(self, config: LocalExtractorConfig) -> None:
+    def __init__(self, config: LocalExtractorConfig, precision: Precision = "fp32") -> None:
         from kornia.feature import DISK
 
         self.config = config
@@ -66,23 +70,33 @@ class DiskExtractor:
         checkpoint: dict[str, Any] = weights.load_checkpoint(weights.DISK_DEPTH)
         self.model.load_state_dict(checkpoint["extractor"])
         self.model.eval()
+        self.model.unet = optimise(self.model.unet, "disk", precision)
+
+    def extract(self, rgb: np.ndarray) -> LocalFeatures:
+        return self.extract_batch([rgb])[0]
 
     @torch.inference_mode()
-    def extract(self, rgb: np.ndarray) -> LocalFeatures:
-        height, width = rgb.shape[:2]
-        image = resize_long_side(to_tensor(rgb), self.config.long_side)
-        (found,) = self.model(
-            image,
+    def extract_batch(self, rgbs: list[np.ndarray]) -> list[LocalFeatures]:
+        """Frames resized to the same working size run through the network as one batch."""
+        return extract_grouped(rgbs, self.config.long_side, self._run, self._to_local)
+
+    def _run(self, images: torch.Tensor) -> list[Any]:
+        return self.model(  # type: ignore[no-any-return]
+            images,
             n=self.config.max_keypoints,
             window_size=self.config.nms_window,
             pad_if_not_divisible=True,
         )
+
+    def _to_local(self, found: Any, image: torch.Tensor, rgb: np.ndarray) -> LocalFeatures:
         if len(found.keypoints) == 0:
             return LocalFeatures.empty(self.descriptor_dim)
         working = (image.shape[-1], image.shape[-2])
         descriptors = torch.nn.functional.normalize(found.descriptors, dim=-1).numpy()
         return LocalFeatures(
-            keypoints=to_decoded_pixels(found.keypoints.numpy(), working, (width, height)),
+            keypoints=to_decoded_pixels(
+                found.keypoints.numpy(), working, (rgb.shape[1], rgb.shape[0])
+            ),
             descriptors=descriptors.astype(np.float32),
             scores=found.detection_scores.numpy().astype(np.float32),
         )
@@ -99,7 +113,7 @@ class XFeatExtractor:
     descriptor_dim = 64
     NMS_WINDOW = 5  # fixed inside kornia's XFeat.detectAndCompute
 
-    def __init__(self, config: LocalExtractorConfig) -> None:
+    def __init__(self, config: LocalExtractorConfig, precision: Precision = "fp32") -> None:
         from kornia.feature import XFeat
 
         if config.nms_window != self.NMS_WINDOW:
@@ -111,24 +125,61 @@ class XFeatExtractor:
         self.model = XFeat(top_k=config.max_keypoints)
         self.model.net.load_state_dict(weights.load_checkpoint(weights.XFEAT))
         self.model.eval()
+        self.model.net = optimise(self.model.net, "xfeat", precision)  # type: ignore[assignment]
+
+    def extract(self, rgb: np.ndarray) -> LocalFeatures:
+        return self.extract_batch([rgb])[0]
 
     @torch.inference_mode()
-    def extract(self, rgb: np.ndarray) -> LocalFeatures:
-        height, width = rgb.shape[:2]
-        image = resize_long_side(to_tensor(rgb), self.config.long_side)
-        resized_h, resized_w = image.shape[-2:]
-        (found,) = self.model.detectAndCompute(image, top_k=self.config.max_keypoints)
+    def extract_batch(self, rgbs: list[np.ndarray]) -> list[LocalFeatures]:
+        """Frames resized to the same working size run through the network as one batch."""
+        return extract_grouped(rgbs, self.config.long_side, self._run, self._to_local)
+
+    def _run(self, images: torch.Tensor) -> list[dict[str, torch.Tensor]]:
+        return self.model.detectAndCompute(images, top_k=self.config.max_keypoints)
+
+    def _to_local(
+        self, found: dict[str, torch.Tensor], image: torch.Tensor, rgb: np.ndarray
+    ) -> LocalFeatures:
         if len(found["keypoints"]) == 0:
             return LocalFeatures.empty(self.descriptor_dim)
+        resized_h, resized_w = image.shape[-2:]
         # XFeat's own working grid: the resized image rounded down to multiples of 32.
         grid_w, grid_h = max(32, resized_w // 32 * 32), max(32, resized_h // 32 * 32)
         ratio = np.array([resized_w / grid_w, resized_h / grid_h])
         grid_pixels = np.rint(found["keypoints"].numpy() / ratio)
         return LocalFeatures(
-            keypoints=to_decoded_pixels(grid_pixels, (grid_w, grid_h), (width, height)),
+            keypoints=to_decoded_pixels(
+                grid_pixels, (grid_w, grid_h), (rgb.shape[1], rgb.shape[0])
+            ),
             descriptors=found["descriptors"].numpy().astype(np.float32),
             scores=found["scores"].numpy().astype(np.float32),
         )
+
+
+def extract_grouped(
+    rgbs: list[np.ndarray],
+    long_side: int,
+    run: Callable[[torch.Tensor], Sequence[Any]],
+    to_local: Callable[[Any, torch.Tensor, np.ndarray], LocalFeatures],
+) -> list[LocalFeatures]:
+    """Resize every frame to ``long_side``, ``run`` each group of equal working size as one
+    batch, and turn each frame's raw result into :class:`LocalFeatures` (input order kept)."""
+    images = [resize_long_side(to_tensor(rgb), long_side) for rgb in rgbs]
+    results: list[LocalFeatures | None] = [None] * len(rgbs)
+    for members in group_by_shape(images):
+        found = run(torch.cat([images[i] for i in members]))
+        for i, one in zip(members, found, strict=True):
+            results[i] = to_local(one, images[i], rgbs[i])
+    return [r for r in results if r is not None]
+
+
+def group_by_shape(images: list[torch.Tensor]) -> list[list[int]]:
+    """Indices of ``images`` grouped by spatial shape, in first-seen order (one batch each)."""
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for i, image in enumerate(images):
+        groups.setdefault(tuple(image.shape[-2:]), []).append(i)
+    return list(groups.values())
 
 
 LOCAL_EXTRACTORS: dict[str, type[DiskExtractor] | type[XFeatExtractor]] = {
@@ -137,12 +188,15 @@ LOCAL_EXTRACTORS: dict[str, type[DiskExtractor] | type[XFeatExtractor]] = {
 }
 
 
-def build_local_extractor(config: LocalExtractorConfig) -> LocalExtractor:
-    """Instantiate the extractor ``config.name`` with its pretrained weights."""
+def build_local_extractor(
+    config: LocalExtractorConfig, precision: Precision = "fp32"
+) -> LocalExtractor:
+    """Instantiate the extractor ``config.name`` with its pretrained weights, run in
+    ``precision`` (already resolved, see :func:`service.ml.precision.resolve_precision`)."""
     try:
         cls = LOCAL_EXTRACTORS[config.name]
     except KeyError:
         raise ValueError(
             f"unknown local extractor {config.name!r}; choose one of {sorted(LOCAL_EXTRACTORS)}"
         ) from None
-    return cls(config)
+    return cls(config, precision)

@@ -143,7 +143,8 @@ class LightGlueMatcher:
 
 def _unit(descriptors: np.ndarray) -> np.ndarray:
     d = descriptors.astype(np.float32)
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    unit: np.ndarray = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return unit
 
 
 def _lightglue_input(features: LocalFeatures, size: tuple[int, int]) -> dict[str, torch.Tensor]:

@@ -4,31 +4,50 @@ evaluation harness share."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from torch import nn
 
 from service.ml.aggregation import aggregate_descriptors
 from service.ml.backbones import GlobalBackbone, build_backbone
+from service.ml.batching import MicroBatcher
 from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
-from service.ml.presets import ModelPreset, preset_signature
+from service.ml.precision import Precision, resolve_precision
+from service.ml.presets import FeatureSignature, ModelPreset
 
 
 class FeaturePipeline:
-    """Runs the CNNs of a preset once per frame: local extractor + global backbone."""
+    """Runs the CNNs of a preset once per frame: local extractor + global backbone.
 
-    def __init__(self, preset: ModelPreset) -> None:
+    ``precision`` is "auto" (bf16 where the CPU computes it natively), "fp32" or "bf16"; it is
+    not part of the signature: bf16 features stay within the accuracy guard of fp32 ones, so an
+    atlas mixes them. With ``batch_window_ms`` > 0, concurrent :meth:`extract` calls arriving
+    within that window run as one batch of up to ``max_batch`` frames.
+    """
+
+    def __init__(
+        self,
+        preset: ModelPreset,
+        precision: str = "fp32",
+        batch_window_ms: float = 0.0,
+        max_batch: int = 8,
+    ) -> None:
         self.preset = preset
-        self.local: LocalExtractor = build_local_extractor(preset.local)
-        self.backbone: GlobalBackbone = build_backbone(preset.backbone)
+        self.precision: Precision = resolve_precision(precision)
+        self.local: LocalExtractor = build_local_extractor(preset.local, self.precision)
+        self.backbone: GlobalBackbone = build_backbone(preset.backbone, self.precision)
+        self.batcher: MicroBatcher[np.ndarray, FrameFeatures] = MicroBatcher(
+            self.extract_batch, batch_window_ms / 1000.0, max_batch
+        )
 
     @property
-    def signature(self) -> dict[str, Any]:
+    def signature(self) -> FeatureSignature:
         """What the stored features mean; an atlas only accepts features of its signature."""
-        return preset_signature(self.preset)
+        return self.preset.signature
 
     def heads_config(self) -> HeadsConfig:
         """The untrained heads' config for this pipeline's features and preset."""
@@ -39,33 +58,65 @@ class FeaturePipeline:
         )
 
     def extract(self, rgb: np.ndarray) -> FrameFeatures:
-        """Local features, their aggregate D and the backbone vector R of one RGB frame."""
-        timings: dict[str, float] = {}
+        """Local features, their aggregate D and the backbone vector R of one RGB frame
+        (batched with concurrent calls when batching is on)."""
+        return self.batcher.submit(rgb)
+
+    def extract_batch(self, rgbs: list[np.ndarray]) -> list[FrameFeatures]:
+        """:meth:`extract` of several frames, each network run once per batch (frames of
+        different sizes are grouped by working size). Timings are the whole batch's."""
         start = time.perf_counter()
-        local = self.local.extract(rgb)
-        timings["local_features"] = _ms_since(start)
+        local = self.local.extract_batch(rgbs)
+        local_ms = _ms_since(start)
         start = time.perf_counter()
-        global_vector = self.backbone.describe(rgb)
-        timings["global_features"] = _ms_since(start)
-        return FrameFeatures(
-            local=local,
-            local_vector=aggregate_descriptors(local.descriptors, local.scores),
-            global_vector=global_vector,
-            image_size=(rgb.shape[1], rgb.shape[0]),
-            timings_ms=timings,
-        )
+        global_vectors = self.backbone.describe_batch(rgbs)
+        timings = {"local_features": local_ms, "global_features": _ms_since(start)}
+        return [
+            FrameFeatures(
+                local=one,
+                local_vector=aggregate_descriptors(one.descriptors, one.scores),
+                global_vector=vector,
+                image_size=(rgb.shape[1], rgb.shape[0]),
+                timings_ms=dict(timings),
+            )
+            for rgb, one, vector in zip(rgbs, local, global_vectors, strict=True)
+        ]
 
 
 @torch.inference_mode()
-def embed_vectors(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray) -> np.ndarray:
+def embed_vectors(
+    heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, precision: Precision = "fp32"
+) -> np.ndarray:
     """``N x D`` and ``N x C`` stored vectors -> ``N x fused`` float32 unit embeddings.
 
-    Works from stored features alone: re-embedding an atlas never runs a CNN.
+    Works from stored features alone: re-embedding an atlas never runs a CNN. In bf16 only the
+    matrix products run in bf16 (:func:`embed_bf16`); the element-wise work stays float32.
     """
     if len(local) == 0:
         return np.zeros((0, heads.config.fused_dim), np.float32)
+    if precision == "bf16":
+        return embed_bf16(heads, torch.from_numpy(local), torch.from_numpy(global_)).numpy()
     embedded = heads.embed(torch.from_numpy(local), torch.from_numpy(global_))
     return embedded.numpy().astype(np.float32)
+
+
+def embed_bf16(heads: LoopNetHeads, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
+    """``heads.embed`` with its matrix products in bf16 (float32 accumulation and element-wise
+    steps): bf16 element-wise arithmetic on the CPU is slower than the products it saves."""
+    fusion, mlp = heads.fusion, heads.similarity.mlp
+    first, last = mlp[0], mlp[2]
+    assert isinstance(first, nn.Linear) and isinstance(last, nn.Linear)
+
+    def product(x: torch.Tensor, weight: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        return torch.mm(x.to(torch.bfloat16), (weight * scale).t().to(torch.bfloat16)).float()
+
+    alpha = fusion.alpha
+    fused = product(local, fusion.project_local.weight, alpha)
+    fused += product(global_, fusion.project_global.weight, 1 - alpha)
+    fused += fusion.bias
+    hidden = torch.relu_(product(fused, first.weight) + first.bias)
+    fused += product(hidden, last.weight) + last.bias
+    return F.normalize(fused, dim=-1)
 
 
 def _ms_since(start: float) -> float:

@@ -11,10 +11,68 @@ benchmarks/RESULTS.md.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, get_type_hints
 
 from service.ml.backbones import BackboneConfig
-from service.ml.local_extractors import LocalExtractorConfig
+from service.ml.backbones.registry import BACKBONES
+from service.ml.heads import DEFAULT_ALPHA
+from service.ml.local_extractors import LOCAL_EXTRACTORS, LocalExtractorConfig
+
+NOT_A_SIGNATURE = "not a feature signature (exactly the 'local' and 'backbone' settings)"
+
+
+@dataclass(frozen=True)
+class FeatureSignature:
+    """What stored features mean: the local extractor's and the backbone's settings.
+
+    An atlas accepts only features of its own signature; two signatures are the same exactly
+    when they compare equal. The atlas row, snapshots and features payloads hold it as JSON
+    (:meth:`to_json`, :meth:`from_json`).
+    """
+
+    local: LocalExtractorConfig
+    backbone: BackboneConfig
+
+    @property
+    def dims(self) -> tuple[int, int]:
+        """(local descriptor dim, backbone vector dim) of features of this signature."""
+        return LOCAL_EXTRACTORS[self.local.name].descriptor_dim, BACKBONES[self.backbone.name].dim
+
+    def to_json(self) -> dict[str, Any]:
+        return {"local": asdict(self.local), "backbone": asdict(self.backbone)}
+
+    @classmethod
+    def from_json(cls, data: object) -> FeatureSignature:
+        """The signature ``data`` holds; ValueError unless it is exactly one (every key, no
+        other, each value of its type, known extractor and backbone names)."""
+        if not isinstance(data, dict):
+            raise ValueError(NOT_A_SIGNATURE)
+        try:
+            signature = cls(
+                LocalExtractorConfig(**data["local"]), BackboneConfig(**data["backbone"])
+            )
+        except (KeyError, TypeError) as exc:
+            raise ValueError(NOT_A_SIGNATURE) from exc
+        kinds = {
+            "local": get_type_hints(LocalExtractorConfig),
+            "backbone": get_type_hints(BackboneConfig),
+        }
+        if signature.to_json() != data or any(
+            type(value) is not kinds[part][key]
+            for part, settings in signature.to_json().items()
+            for key, value in settings.items()
+        ):
+            raise ValueError(NOT_A_SIGNATURE)
+        if signature.local.name not in LOCAL_EXTRACTORS or signature.backbone.name not in BACKBONES:
+            raise ValueError(f"unknown extractor or backbone in {signature}")
+        return signature
+
+    def matches(self, stored: object) -> bool:
+        """Whether JSON read from a row or an archive is this signature."""
+        try:
+            return FeatureSignature.from_json(stored) == self
+        except ValueError:
+            return False
 
 
 @dataclass(frozen=True)
@@ -22,7 +80,12 @@ class ModelPreset:
     name: str
     local: LocalExtractorConfig
     backbone: BackboneConfig
-    alpha: float = 0.7
+    alpha: float = DEFAULT_ALPHA
+
+    @property
+    def signature(self) -> FeatureSignature:
+        """What features extracted with this preset mean; atlases record it."""
+        return FeatureSignature(self.local, self.backbone)
 
 
 PRESETS: dict[str, ModelPreset] = {
@@ -74,8 +137,3 @@ def resolve_preset(
         backbone=model_backbone,
         alpha=preset.alpha if alpha is None else alpha,
     )
-
-
-def preset_signature(preset: ModelPreset) -> dict[str, Any]:
-    """What stored features mean (extractor and backbone settings); atlases record it."""
-    return {"local": asdict(preset.local), "backbone": asdict(preset.backbone)}

@@ -22,57 +22,85 @@ import copy
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
 
-TRAINABLE_PARTS = ("fusion", "similarity", "classifier")
+TrainablePart = Literal["fusion", "similarity", "classifier"]
+TRAINABLE_PARTS: tuple[TrainablePart, ...] = ("fusion", "similarity", "classifier")
+MAX_SEED = 2**64 - 1
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class TrainingConfig:
-    """Parameters of one retraining run (the API's job parameters)."""
+    """Parameters of one retraining run, with their bounds: the API's job parameters are this
+    schema, so a value either side accepts, both do."""
 
-    shots: int = 5
-    epochs: int = 100
-    learning_rate: float = 3e-3
-    weight_decay: float = 1e-4
-    classification_weight: float = 1.0
-    contrastive_weight: float = 1.0
-    margin: float = 1.0
-    embed_dim: int = 256
-    train: tuple[str, ...] = TRAINABLE_PARTS
-    noise_std: float = 0.01
-    feature_dropout: float = 0.1
-    patience: int = 15
-    seed: int = 0
+    shots: int = Field(default=5, ge=1, le=100, description="Training frames (shots) per submap.")
+    epochs: int = Field(
+        default=100, ge=1, le=2000, description="Most epochs; early stopping may end sooner."
+    )
+    learning_rate: float = Field(default=3e-3, gt=0, le=1)
+    weight_decay: float = Field(default=1e-4, ge=0, le=1)
+    classification_weight: float = Field(
+        default=1.0, ge=0, le=100, description="Cross-entropy weight."
+    )
+    contrastive_weight: float = Field(
+        default=1.0, ge=0, le=100, description="Contrastive loss weight."
+    )
+    margin: float = Field(
+        default=1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
+    )
+    embed_dim: int = Field(
+        default=256, ge=2, le=4096, description="Size of the trained fused embedding."
+    )
+    train: tuple[TrainablePart, ...] = Field(
+        default_factory=lambda: TRAINABLE_PARTS,
+        min_length=1,
+        description="Which layers are trained; the others keep their initialisation.",
+    )
+    noise_std: float = Field(
+        default=0.01, ge=0, le=1, description="Gaussian noise on stored vectors."
+    )
+    feature_dropout: float = Field(
+        default=0.1, ge=0, lt=1, description="Feature dropout on stored vectors."
+    )
+    patience: int = Field(
+        default=15, ge=1, le=1000, description="Epochs without validation gain before stopping."
+    )
+    seed: int = Field(default=0, ge=0)
     # Frame-level term: two augmented views of each shot must find each other among all the
     # shots (instance discrimination), so pulling a submap together cannot merge its frames.
     # Off by default: it did not stop map-only retraining from lowering Recall@1 on every K
     # (see benchmarks/RESULTS.md); a not-worse check in the job is the safeguard to build.
-    frame_weight: float = 0.0
-    frame_temperature: float = 0.1
+    frame_weight: float = Field(
+        default=0.0, ge=0, le=100, description="Frame-level (instance discrimination) weight."
+    )
+    frame_temperature: float = Field(
+        default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
+    )
 
     def __post_init__(self) -> None:
-        unknown = set(self.train) - set(TRAINABLE_PARTS)
-        if unknown or not self.train:
-            raise ValueError(
-                f"train must name some of {list(TRAINABLE_PARTS)}, got {list(self.train)}"
-            )
-        if self.shots < 1 or self.epochs < 1 or self.embed_dim < 2:
-            raise ValueError("shots and epochs must be >= 1 and embed_dim >= 2")
-        if self.learning_rate <= 0 or self.margin <= 0:
-            raise ValueError("learning_rate and margin must be positive")
-        if self.frame_weight < 0 or self.frame_temperature <= 0:
-            raise ValueError("frame_weight must be >= 0 and frame_temperature positive")
-        if self.classification_weight < 0 or self.contrastive_weight < 0:
-            raise ValueError("loss weights must be >= 0")
         if self.classification_weight == 0 and self.contrastive_weight == 0:
             raise ValueError("at least one loss weight must be positive")
+        if self.seed > MAX_SEED:  # not a schema bound: JSON Schema would round it to a float
+            raise ValueError(f"seed must be in 0..{MAX_SEED} (64 bits, what torch accepts)")
+
+    def check_fits(self, base: HeadsConfig) -> None:
+        """Refuse an ``embed_dim`` the atlas's features cannot fill: the fusion starts from a
+        PCA of the fused input, which has only ``local_dim + global_dim`` directions."""
+        fused_input = base.local_dim + base.global_dim
+        if self.embed_dim > fused_input:
+            raise ValueError(
+                f"embed_dim {self.embed_dim} exceeds the atlas's fused input size {fused_input} "
+                f"({base.local_dim} local + {base.global_dim} global)"
+            )
 
 
 @dataclass
@@ -337,7 +365,7 @@ def train_heads(
                 for _ in range(2)
             )
             loss = loss + config.frame_weight * frame_loss(first, second, config.frame_temperature)
-        loss.backward()
+        torch.autograd.backward(loss)
         optimiser.step()
         heads.eval()
         epochs_run = epoch + 1

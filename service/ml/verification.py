@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -85,6 +85,8 @@ class Verification:
         model: "essential", "fundamental" or "none".
         relative_pose: with an essential matrix (both frames have intrinsics), else None.
         ms: milliseconds spent (matching + RANSAC).
+        inlier_pairs: ``inliers x 2`` int64 (index in the query's keypoints, index in the
+            candidate's), only when :meth:`Verifier.verify` was asked to keep them.
     """
 
     matches: int
@@ -94,6 +96,7 @@ class Verification:
     model: str
     relative_pose: RelativePose | None
     ms: float
+    inlier_pairs: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 class Verifier:
@@ -103,7 +106,9 @@ class Verifier:
         self.config = config
         self.matcher = matcher or build_matcher(config.matcher, config.ratio)
 
-    def verify(self, query: View, candidate: View) -> Verification:
+    def verify(self, query: View, candidate: View, *, keep_inliers: bool = False) -> Verification:
+        """Match, fit and count; ``keep_inliers`` also returns which matches were inliers
+        (for drawing them), which the search path never asks for."""
         start = time.perf_counter()
         matches = self.matcher.match(
             query.local, query.image_size, candidate.local, candidate.image_size
@@ -126,6 +131,7 @@ class Verifier:
             model=geometry.model,
             relative_pose=pose,
             ms=(time.perf_counter() - start) * 1000.0,
+            inlier_pairs=matches.pairs[geometry.inlier_mask] if keep_inliers else None,
         )
 
 

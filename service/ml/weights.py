@@ -7,7 +7,6 @@ seeded for kornia or torchvision serves LoopNet too. Nothing here runs at import
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,6 +63,16 @@ MOBILENETV2_TRUNK = WeightsFile(
 )
 
 
+_offline = False  # the application's setting (LOOPNET_OFFLINE), passed in by set_offline
+
+
+def set_offline(offline: bool) -> None:
+    """Refuse (True) or allow downloading missing weights; the application passes its setting
+    here before it builds a model, so this library reads no environment variable itself."""
+    global _offline
+    _offline = offline
+
+
 def checkpoint_dir() -> Path:
     """The torch hub checkpoint directory, honouring ``TORCH_HOME`` as torch does."""
     return Path(torch.hub.get_dir()) / "checkpoints"
@@ -79,7 +88,7 @@ def ensure_weights(weights: WeightsFile) -> Path:
     path = checkpoint_dir() / weights.file_name
     if path.is_file():
         return path
-    if os.environ.get("LOOPNET_OFFLINE", "").lower() not in ("1", "true", "yes"):
+    if not _offline:
         path.parent.mkdir(parents=True, exist_ok=True)
         for url in weights.urls:
             partial = path.with_name(path.name + ".partial")

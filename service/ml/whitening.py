@@ -118,7 +118,10 @@ class Whitening:
 
     def project(self, vectors: np.ndarray) -> np.ndarray:
         """``n x dim`` -> ``n x kept`` reduced, scaled, unscaled-norm coordinates."""
-        return ((np.asarray(vectors, np.float32) - self.mean) @ self.axes) * self.scale
+        projected: np.ndarray = (
+            (np.asarray(vectors, np.float32) - self.mean) @ self.axes
+        ) * self.scale
+        return projected
 
     def transform(self, vectors: np.ndarray) -> np.ndarray:
         """``n x dim`` -> ``n x kept`` L2-normalised whitened vectors."""

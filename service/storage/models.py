@@ -242,3 +242,34 @@ class LoopClosure(Base):
     model_version: Mapped[int] = mapped_column(Integer)
     source: Mapped[str] = mapped_column(String(16))  # query | observe
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    # what verification found (None when not verified): RANSAC inliers and the relative pose
+    # {"rotation": [w, x, y, z], "translation": [x, y, z]} of the query camera to the frame's
+    inliers: Mapped[int | None] = mapped_column(Integer)
+    relative_pose: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    # the observing robot's frame stored by the same ``observe`` call (None for a ``query``,
+    # which keeps no frame, or once that frame is deleted): matches are redrawn from its keypoints
+    query_frame_id: Mapped[int | None] = mapped_column(
+        ForeignKey("frames.id", ondelete="SET NULL"), index=True
+    )
+
+
+class FrameThumbnail(Base):
+    """A small JPEG of a frame (see service/ml/thumbnails.py): the only image data kept."""
+
+    __tablename__ = "frame_thumbnails"
+
+    frame_id: Mapped[int] = mapped_column(
+        ForeignKey("frames.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class LoopClosureThumbnail(Base):
+    """The thumbnail of the query image that closed a loop (a query keeps no frame)."""
+
+    __tablename__ = "loop_closure_thumbnails"
+
+    loop_closure_id: Mapped[int] = mapped_column(
+        ForeignKey("loop_closures.id", ondelete="CASCADE"), primary_key=True
+    )
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)

@@ -12,7 +12,7 @@ from service.errors import Conflict, NotFound
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.storage.feature_store import to_row
-from service.storage.models import Atlas, Frame, ModelVersion, Submap
+from service.storage.models import Atlas, Frame, FrameThumbnail, ModelVersion, Submap
 
 
 def create_atlas(
@@ -129,6 +129,8 @@ def add_frame(
     session.add(frame)
     session.flush()
     session.add(to_row(frame.id, features))
+    if features.thumbnail is not None:
+        session.add(FrameThumbnail(frame_id=frame.id, jpeg=features.thumbnail))
     session.flush()
     return frame
 

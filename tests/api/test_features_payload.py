@@ -14,8 +14,10 @@ from fastapi.testclient import TestClient
 from service.features_payload import encode_features
 from service.ml.features import FrameFeatures
 from service.ml.images import decode_image
+from service.ml.presets import FeatureSignature
 from tests.api.helpers import add_frame, create_atlas, stored_state
 from tests.conftest import gardens_point_day_night
+from tests.reliability.hostile import renamed_member
 
 
 def features_of(pipeline, image: bytes) -> FrameFeatures:  # type: ignore[no-untyped-def]
@@ -101,19 +103,23 @@ def _zip_bomb(payload: bytes) -> bytes:
     return buffer.getvalue()
 
 
-def _other_signature(signature: dict) -> np.ndarray:
-    other = json.loads(json.dumps(signature))
+def _other_signature(signature: FeatureSignature) -> np.ndarray:
+    other = signature.to_json()
     other["local"]["long_side"] = 1024
     return np.array(json.dumps(other))
 
 
-MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] = {
+MALFORMED: dict[str, tuple[Callable[[bytes, FeatureSignature, FrameFeatures], bytes], str]] = {
     "not a zip": (lambda p, s, f: b"hello", "not an .npz archive"),
     "missing array": (lambda p, s, f: _rewrite(p, scores=None), "must hold exactly"),
     "extra array": (lambda p, s, f: _rewrite(p, extra=np.zeros(3)), "must hold exactly"),
     "other extractor settings": (
         lambda p, s, f: _rewrite(p, signature=_other_signature(s)),
         "extracted with",
+    ),
+    "not a signature": (
+        lambda p, s, f: _rewrite(p, signature=np.array(json.dumps({"local": {}}))),
+        "not a feature signature",
     ),
     "descriptor width": (
         lambda p, s, f: _rewrite(p, descriptors=np.ones((f.local.count, 64), np.float32) / 8),
@@ -146,6 +152,13 @@ MALFORMED: dict[str, tuple[Callable[[bytes, dict, FrameFeatures], bytes], str]] 
         lambda p, s, f: _rewrite(p, scores=np.array([{"a": 1}], dtype=object)),
         "unreadable",
     ),
+    "keypoints with three columns": (
+        lambda p, s, f: _rewrite(
+            p, keypoints=np.concatenate([f.local.keypoints, f.local.keypoints[:, :1]], axis=1)
+        ),
+        "keypoints must be N x 2",
+    ),
+    "member without .npy": (lambda p, s, f: renamed_member(p, "scores.npy", "scores"), "exactly"),
     "image size": (lambda p, s, f: _rewrite(p, image_size=np.array([0, 10])), "image_size"),
     "zip bomb": (lambda p, s, f: _zip_bomb(p), "inflates to"),
 }

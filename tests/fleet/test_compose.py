@@ -24,7 +24,8 @@ def seconds(duration: str) -> float:
 def test_compose_file_has_the_fleet_topology() -> None:
     compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
     services = compose["services"]
-    assert set(services) == {"api", "worker", "postgres", "redis"}
+    always = {name for name, service in services.items() if not service.get("profiles")}
+    assert always == {"api", "worker", "postgres", "redis"}
     api, worker = services["api"], services["worker"]
 
     # one image, two commands
@@ -40,12 +41,20 @@ def test_compose_file_has_the_fleet_topology() -> None:
         env = service["environment"]
         assert env["LOOPNET_DATABASE_URL"].startswith("postgresql+psycopg://")
         assert "@postgres:5432/" in env["LOOPNET_DATABASE_URL"]
-        assert env["LOOPNET_REDIS_URL"].startswith("redis://redis:6379")
+        assert env["LOOPNET_REDIS_URL"] == (
+            "redis://:${LOOPNET_REDIS_PASSWORD:?set LOOPNET_REDIS_PASSWORD}@redis:6379/0"
+        )
         assert env["LOOPNET_DATA_DIR"] == "/data" and env["LOOPNET_AUTH"] == "required"
         assert "loopnet-data:/data" in service["volumes"]
         assert service["depends_on"]["postgres"]["condition"] == "service_healthy"
         assert service["depends_on"]["redis"]["condition"] == "service_healthy"
     assert {"loopnet-data", "postgres-data", "redis-data"} <= set(compose["volumes"])
+
+    # the queue has a password (its clients send it), and the image never starts open
+    redis = services["redis"]
+    assert '--requirepass "$$REDISCLI_AUTH"' in " ".join(redis["command"])
+    assert redis["environment"]["REDISCLI_AUTH"].startswith("${LOOPNET_REDIS_PASSWORD:?")
+    assert re.search(r"^\s+LOOPNET_AUTH=required\s*$", dockerfile, re.MULTILINE)
 
     # health checks everywhere; the API's is its readiness endpoint
     for name, service in services.items():

@@ -23,7 +23,7 @@ import httpx
 import pytest
 
 from tests.conftest import DATA_DIR, TEST_LONG_SIDE, TEST_MAX_KEYPOINTS
-from tests.test_cli import free_port
+from tests.processes import free_port
 
 LOOPNET = [sys.executable, "-m", "service.cli"]
 SYNC_SECONDS = 0.25

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from pathlib import Path
@@ -59,9 +60,10 @@ def test_failed_job_leaves_the_active_version(client: TestClient, settings) -> N
     assert model_files(settings.data_dir) == []
 
 
-def test_cancelling_a_running_job(client: TestClient, settings) -> None:  # type: ignore[no-untyped-def]
+def test_cancelling_a_running_job(client: TestClient, settings, caplog) -> None:  # type: ignore[no-untyped-def]
+    caplog.set_level(logging.INFO, logger="service.jobs.retraining")
     atlas_with_two_submaps(client)
-    runner, job_id = submit(client, {"epochs": 100_000, "patience": 100_000, "embed_dim": 8})
+    runner, job_id = submit(client, {"epochs": 2000, "patience": 1000, "embed_dim": 8})  # the most
     thread = threading.Thread(target=runner.run, args=(job_id,))
     thread.start()
     service = client.app.state.runtime.service  # type: ignore[attr-defined]
@@ -75,6 +77,7 @@ def test_cancelling_a_running_job(client: TestClient, settings) -> None:  # type
     status, _, versions = state(client, job_id)
     assert status == "cancelled" and versions == [(1, True)]
     assert model_files(settings.data_dir) == []
+    assert f"job {job_id} (atlas 'campus'): cancelled" in caplog.text
     again = client.post(f"/v1/atlases/campus/jobs/{job_id}/cancel")
     assert again.status_code == 409 and "already cancelled" in again.json()["detail"]
     del service
@@ -101,3 +104,20 @@ def test_job_api_validation(client: TestClient) -> None:
     assert client.get("/v1/atlases/campus/jobs/99").status_code == 404
     assert client.post("/v1/atlases/campus/models/7/activate").status_code == 404
     assert client.post("/v1/atlases/nowhere/jobs", json={"kind": "retrain"}).status_code == 404
+
+
+def test_the_worker_logs_a_job_cancelled_before_it_ran_as_not_run(
+    client: TestClient, settings, caplog
+) -> None:  # type: ignore[no-untyped-def]
+    from service.jobs.queue import Queue
+
+    caplog.set_level(logging.INFO)
+    atlas_with_two_submaps(client)
+    _, job_id = submit(client, {"embed_dim": 8})
+    assert client.post(f"/v1/atlases/campus/jobs/{job_id}/cancel").status_code == 200
+    queue = Queue(settings)
+    queue.huey.immediate = True  # Huey runs the task in this process, logging as the worker does
+    queue.enqueue(job_id)
+    assert state(client, job_id)[0] == "cancelled"
+    assert f"job {job_id}: not run, it is cancelled" in caplog.text
+    assert "executed" not in caplog.text

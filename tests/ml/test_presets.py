@@ -8,7 +8,7 @@ from fastapi.testclient import TestClient
 
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
-from service.ml.presets import PRESETS, resolve_preset
+from service.ml.presets import PRESETS, FeatureSignature, resolve_preset
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 
 
@@ -19,6 +19,35 @@ def test_presets_and_overrides() -> None:
     assert resolve_preset("fast", long_side=256).local.long_side == 256
     with pytest.raises(ValueError, match="choose one of"):
         resolve_preset("quick")
+
+
+def test_a_signature_round_trips_and_refuses_what_is_not_one() -> None:
+    signature = PRESETS["fast"].signature
+    assert FeatureSignature.from_json(signature.to_json()) == signature
+    assert signature.dims == (64, 1280)
+    assert signature != PRESETS["default"].signature
+    assert signature.matches(signature.to_json())
+    assert not signature.matches(PRESETS["default"].signature.to_json())
+    assert not signature.matches({})
+
+    def edited(part: str, key: str, value: object) -> dict[str, object]:
+        data = signature.to_json()
+        data[part][key] = value
+        return data
+
+    for bad in (
+        {},
+        [],
+        {**signature.to_json(), "extra": {}},
+        edited("local", "max_keypoints", "512"),
+        edited("local", "max_keypoints", 512.0),
+        edited("local", "nms_window", True),
+        edited("local", "name", "sift"),
+        edited("backbone", "weights", "x"),
+        {"local": signature.to_json()["local"], "backbone": None},
+    ):
+        with pytest.raises(ValueError):
+            FeatureSignature.from_json(bad)
 
 
 @pytest.fixture(scope="module")

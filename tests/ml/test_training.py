@@ -134,7 +134,7 @@ def test_needs_two_submaps_and_valid_config() -> None:
     data = clustered(submaps=1)
     with pytest.raises(ValueError, match="two submaps"):
         train_heads(data, BASE, TrainingConfig(embed_dim=16))
-    with pytest.raises(ValueError, match="train must name"):
+    with pytest.raises(ValueError, match="should be .fusion., .similarity. or .classifier."):
         TrainingConfig(train=("backbone",))
     with pytest.raises(ValueError, match="loss weight"):
         TrainingConfig(classification_weight=0, contrastive_weight=0)

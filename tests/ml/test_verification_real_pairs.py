@@ -30,6 +30,19 @@ def test_cohog_same_place_verified_other_places_rejected(pipeline, place: int) -
         assert different.inliers < same.inliers
 
 
+def test_inlier_pairs_only_when_asked_and_they_index_both_keypoint_sets(pipeline) -> None:  # type: ignore[no-untyped-def]
+    verifier = Verifier(VerificationConfig(matcher="mnn", min_inliers=default_min_inliers("mnn")))
+    query, ref = cohog_view(pipeline, "query", 0), cohog_view(pipeline, "ref", 0)
+    plain = verifier.verify(query, ref)
+    kept = verifier.verify(query, ref, keep_inliers=True)
+    assert plain.inlier_pairs is None
+    assert kept.inlier_pairs is not None and kept.inlier_pairs.shape == (kept.inliers, 2)
+    assert (kept.inliers, kept.matches) == (plain.inliers, plain.matches)
+    assert (kept.inlier_pairs[:, 0] < query.local.count).all()
+    assert (kept.inlier_pairs[:, 1] < ref.local.count).all()
+    assert len({tuple(p) for p in kept.inlier_pairs.tolist()}) == kept.inliers  # no repeats
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("matcher", ["mnn", "lightglue"])
 def test_day_night_full_size_pairs(matcher: str) -> None:

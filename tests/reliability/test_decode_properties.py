@@ -19,7 +19,7 @@ FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCh
 def test_every_valid_tiny_image_decodes_to_rgb(data: bytes) -> None:
     rgb = decode_image(data, LIMITS)
     assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
-    assert 1 <= rgb.shape[0] <= 48 and 1 <= rgb.shape[1] <= 48
+    assert 16 <= rgb.shape[0] <= 48 and 16 <= rgb.shape[1] <= 48
 
 
 @FAST

@@ -37,12 +37,12 @@ def encode_image(
 
 
 @st.composite
-def valid_images(draw: st.DrawFn, max_side: int = 48) -> bytes:
+def valid_images(draw: st.DrawFn, min_side: int = 16, max_side: int = 48) -> bytes:
     fmt = draw(st.sampled_from(FORMATS))
     allowed = {"JPEG": JPEG_MODES, "WEBP": WEBP_MODES}.get(fmt, PNG_MODES)
     return encode_image(
-        draw(st.integers(1, max_side)),
-        draw(st.integers(1, max_side)),
+        draw(st.integers(min_side, max_side)),
+        draw(st.integers(min_side, max_side)),
         draw(st.sampled_from(allowed)),
         fmt,
         draw(st.integers(0, 2**16)),
@@ -69,6 +69,17 @@ def broken_images(draw: st.DrawFn) -> bytes:
     return header + bytes(data)
 
 
+def multi_picture_jpeg(width: int = 32, height: int = 24) -> bytes:
+    """An MPO file (what phone cameras write): two JPEG pictures, the first one the photo."""
+    first, second = (
+        Image.fromarray(np.random.default_rng(seed).integers(0, 256, (height, width, 3), np.uint8))
+        for seed in (1, 2)
+    )
+    buffer = io.BytesIO()
+    first.save(buffer, "MPO", save_all=True, append_images=[second])
+    return buffer.getvalue()
+
+
 def pixel_bomb(width: int, height: int) -> bytes:
     """A PNG of one colour: a few kilobytes on the wire, ``width x height`` pixels decoded."""
     buffer = io.BytesIO()
@@ -80,6 +91,8 @@ def image_uploads() -> st.SearchStrategy[bytes]:
     """Every kind of upload a robot (or an attacker) might send."""
     return st.one_of(
         valid_images(),
+        valid_images(min_side=1, max_side=15),  # below the minimum size
+        st.sampled_from([encode_image(2000, 1, "L", "PNG", 0), multi_picture_jpeg()]),
         broken_images(),
         st.binary(max_size=256),
         st.sampled_from([b"", pixel_bomb(1500, 1500), pixel_bomb(4000, 100)]),

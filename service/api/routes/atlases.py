@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Response, status
 
-from service.api.auth import AdminAccess, OperatorAccess, RobotAccess
+from service.api.auth import AdminAccess, OperatorAccess, RobotAccess, UnscopedAdminAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
 from service.atlas import reads
@@ -26,7 +26,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
     responses={409: {"model": ErrorOut}},
     summary="Create an atlas",
 )
-def create_atlas(body: AtlasIn, service: ServiceDep, _: AdminAccess) -> AtlasOut:
+def create_atlas(body: AtlasIn, service: ServiceDep, _: UnscopedAdminAccess) -> AtlasOut:
     service.create_atlas(body.name, body.description)
     return AtlasOut(**reads.atlas_summary(service.sessions, body.name))
 

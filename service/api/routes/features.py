@@ -25,6 +25,7 @@ from service.api.forms import (
     SequenceLength,
     SubmapName,
     Timestamp,
+    frame_robot,
     intrinsics_from_form,
     pose_from_form,
 )
@@ -70,7 +71,7 @@ def add_frame_features(
     access: RobotAccess,
     features: Annotated[UploadFile, File(description=PAYLOAD_DOC)],
     submap: SubmapName,
-    robot_id: FrameRobot,
+    robot_id: FrameRobot = None,
     timestamp: Timestamp = None,
     pose: PoseField = None,
     intrinsics: FrameIntrinsics = None,
@@ -78,7 +79,7 @@ def add_frame_features(
     frame = service.ingest_features(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=acting_robot(access, robot_id),
+        robot_id=frame_robot(access, robot_id),
         features=read_features(service, atlas, features),
         timestamp=timestamp,
         pose=pose_from_form(pose),

@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Response, UploadFile, status
 
-from service.api.auth import OperatorAccess, RobotAccess, acting_robot
+from service.api.auth import OperatorAccess, RobotAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.forms import (
     FrameIntrinsics,
@@ -14,6 +14,7 @@ from service.api.forms import (
     PoseField,
     SubmapName,
     Timestamp,
+    frame_robot,
     intrinsics_from_form,
     pose_from_form,
 )
@@ -43,7 +44,7 @@ def add_frame(
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: SubmapName,
-    robot_id: FrameRobot,
+    robot_id: FrameRobot = None,
     timestamp: Timestamp = None,
     pose: PoseField = None,
     intrinsics: FrameIntrinsics = None,
@@ -51,7 +52,7 @@ def add_frame(
     frame = service.ingest_frame(
         atlas_name=atlas,
         submap_name=submap,
-        robot_id=acting_robot(caller, robot_id),
+        robot_id=frame_robot(caller, robot_id),
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         timestamp=timestamp,
         pose=pose_from_form(pose),
@@ -75,12 +76,12 @@ def frame_out(record: reads.FrameRecord) -> FrameOut:
     pose = None
     if frame.qw is not None:
         pose = PoseIn(
-            rotation=[frame.qw, frame.qx, frame.qy, frame.qz],  # type: ignore[list-item]
-            translation=[frame.tx, frame.ty, frame.tz],  # type: ignore[list-item]
+            rotation=[frame.qw, frame.qx, frame.qy, frame.qz],
+            translation=[frame.tx, frame.ty, frame.tz],
         )
     intrinsics = None
     if frame.fx is not None:
-        intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)  # type: ignore[arg-type]
+        intrinsics = IntrinsicsIn(fx=frame.fx, fy=frame.fy, cx=frame.cx, cy=frame.cy)
     return FrameOut(
         frame_id=frame.id,
         atlas=record.atlas,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, status
@@ -42,7 +43,7 @@ def submit_job(
         runtime.queue,
         atlas=atlas,
         kind=body.kind,
-        params=body.params.model_dump(),
+        params=asdict(body.params),
     )
     return job_out(atlas, job)
 

@@ -1,4 +1,8 @@
-"""API keys (admin): create (the token is shown once), list, revoke."""
+"""API keys (admin): create (the token is shown once), list, revoke.
+
+A scoped admin works within its atlases: it creates keys only for them (and at most admin),
+lists and revokes only keys limited to them (others answer as if they did not exist).
+"""
 
 from __future__ import annotations
 
@@ -18,6 +22,8 @@ if TYPE_CHECKING:
 
 router = APIRouter(tags=["keys"])
 ERRORS: dict[int | str, dict[str, Any]] = {401: {"model": ErrorOut}, 403: {"model": ErrorOut}}
+# an unknown atlas (create), a key that does not exist or lies outside the caller's atlases
+NOT_FOUND: dict[int | str, dict[str, Any]] = {**ERRORS, 404: {"model": ErrorOut}}
 
 
 def key_out(key: ApiKey) -> ApiKeyOut:
@@ -34,24 +40,30 @@ def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
     "/keys",
     response_model=NewApiKeyOut,
     status_code=status.HTTP_201_CREATED,
-    responses=ERRORS,
+    responses=NOT_FOUND,
     summary="Create an API key",
 )
-def create(body: ApiKeyIn, runtime: RuntimeDep, _: AdminAccess) -> NewApiKeyOut:
-    new = keys.issue(_sessions(runtime), name=body.name, role=Role[body.role], atlases=body.atlases)
+def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKeyOut:
+    new = keys.issue(
+        _sessions(runtime),
+        name=body.name,
+        role=Role[body.role],
+        atlases=body.atlases,
+        creator=caller,
+    )
     return NewApiKeyOut(**key_out(new.key).model_dump(), token=new.token)
 
 
 @router.get("/keys", response_model=list[ApiKeyOut], responses=ERRORS, summary="List API keys")
-def list_all(runtime: RuntimeDep, _: AdminAccess) -> list[ApiKeyOut]:
-    return [key_out(key) for key in keys.listing(_sessions(runtime))]
+def list_all(runtime: RuntimeDep, caller: AdminAccess) -> list[ApiKeyOut]:
+    return [key_out(key) for key in keys.listing(_sessions(runtime), viewer=caller)]
 
 
 @router.delete(
     "/keys/{key_id}",
     response_model=ApiKeyOut,
-    responses={**ERRORS, 404: {"model": ErrorOut}},
+    responses=NOT_FOUND,
     summary="Revoke an API key",
 )
-def revoke(key_id: RowId, runtime: RuntimeDep, _: AdminAccess) -> ApiKeyOut:
-    return key_out(keys.revoke(_sessions(runtime), key_id=key_id))
+def revoke(key_id: RowId, runtime: RuntimeDep, caller: AdminAccess) -> ApiKeyOut:
+    return key_out(keys.revoke(_sessions(runtime), key_id=key_id, revoker=caller))

@@ -18,6 +18,7 @@ from service.api.forms import (
     RobotId,
     SequenceLength,
     Timestamp,
+    frame_robot,
     intrinsics_from_form,
     pose_from_form,
 )
@@ -93,15 +94,15 @@ def observe(
     caller: RobotAccess,
     image: Annotated[UploadFile, File(description="JPEG, PNG or WebP image.")],
     submap: Annotated[str, Form(description="Submap the new frame is added to.")],
-    robot_id: FrameRobot,
     filters: ObserveFilterForm,
+    robot_id: FrameRobot = None,
     timestamp: Timestamp = None,
     pose: PoseField = None,
     intrinsics: QueryIntrinsics = None,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
     sequence_length: SequenceLength = None,
 ) -> ObserveOut:
-    robot_id = acting_robot(caller, robot_id)
+    robot_id = frame_robot(caller, robot_id)
     query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
     result, frame = service.observe(
         atlas_name=atlas,
@@ -115,5 +116,11 @@ def observe(
         query_filter=query_filter,
         sequence_length=sequence_length,
     )
-    record_if_inter_robot(service.sessions, robot_id=robot_id, result=result, source="observe")
+    record_if_inter_robot(
+        service.sessions,
+        robot_id=robot_id,
+        result=result,
+        source="observe",
+        query_frame_id=frame.id,
+    )
     return ObserveOut.model_validate({**asdict(result), "frame_id": frame.id})

@@ -11,7 +11,7 @@ from fastapi import APIRouter, File, Query, UploadFile, status
 from fastapi.responses import FileResponse
 from starlette.background import BackgroundTask
 
-from service.api.auth import AdminAccess
+from service.api.auth import AdminAccess, UnscopedAdminAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import AtlasOut, ErrorOut
 from service.atlas import reads
@@ -60,7 +60,7 @@ def export(atlas: str, service: ServiceDep, _: AdminAccess) -> FileResponse:
 )
 def restore(
     service: ServiceDep,
-    _: AdminAccess,
+    _: UnscopedAdminAccess,
     archive: Annotated[UploadFile, File(description="An archive from a snapshot export.")],
     name: Annotated[
         str | None, Query(description="The new atlas's name (default: archived)")

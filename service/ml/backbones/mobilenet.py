@@ -52,7 +52,8 @@ class InvertedResidual(nn.Module):
         self.conv = nn.Sequential(*layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.conv(x) if self.use_residual else self.conv(x)
+        out: torch.Tensor = self.conv(x)
+        return x + out if self.use_residual else out
 
 
 class MobileNetV2Trunk(nn.Module):
@@ -72,4 +73,5 @@ class MobileNetV2Trunk(nn.Module):
         self.features = nn.Sequential(*layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.features(x)
+        features: torch.Tensor = self.features(x)
+        return features

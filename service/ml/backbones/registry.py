@@ -15,6 +15,7 @@ from service.ml import weights
 from service.ml.backbones.mobilenet import MobileNetV2Trunk
 from service.ml.backbones.resnet import ResNet18Trunk
 from service.ml.images import resize_exact, to_tensor
+from service.ml.precision import Precision, optimise
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -75,24 +76,33 @@ def gem(feature_map: torch.Tensor, p: float = 3.0, eps: float = 1e-6) -> torch.T
 class GlobalBackbone:
     """An ImageNet CNN trunk with pooling: RGB frame -> L2-normalised ``dim`` vector."""
 
-    def __init__(self, config: BackboneConfig, trunk: nn.Module | None = None) -> None:
+    def __init__(
+        self, config: BackboneConfig, trunk: nn.Module | None = None, precision: Precision = "fp32"
+    ) -> None:
         """``trunk`` replaces the pretrained one (benchmarks time a random-init trunk)."""
         spec = backbone_spec(config.name)
         if config.pooling not in ("gem", "avg"):
             raise ValueError(f"unknown pooling {config.pooling!r}; choose 'gem' or 'avg'")
         self.config = config
         self.dim = spec.dim
-        self.trunk = (trunk if trunk is not None else pretrained_trunk(spec)).eval()
+        raw = trunk if trunk is not None else pretrained_trunk(spec)
+        self.trunk = optimise(raw, config.name, precision)
         self._mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
         self._std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
 
-    @torch.inference_mode()
     def describe(self, rgb: np.ndarray) -> np.ndarray:
+        vector: np.ndarray = self.describe_batch([rgb])[0]
+        return vector
+
+    @torch.inference_mode()
+    def describe_batch(self, rgbs: list[np.ndarray]) -> np.ndarray:
+        """``len(rgbs) x dim`` float32 unit vectors; every frame is resized to the input size,
+        so the whole list runs as one batch."""
         size = self.config.input_size
-        image = resize_exact(to_tensor(rgb), size, size)
+        image = torch.cat([resize_exact(to_tensor(rgb), size, size) for rgb in rgbs])
         feature_map = self.trunk((image - self._mean) / self._std)
         pooled = gem(feature_map) if self.config.pooling == "gem" else feature_map.mean((-2, -1))
-        return F.normalize(pooled, dim=-1)[0].numpy().astype(np.float32)
+        return F.normalize(pooled, dim=-1).numpy().astype(np.float32)
 
 
 def backbone_spec(name: str) -> BackboneSpec:
@@ -102,6 +112,6 @@ def backbone_spec(name: str) -> BackboneSpec:
         raise ValueError(f"unknown backbone {name!r}; choose one of {sorted(BACKBONES)}") from None
 
 
-def build_backbone(config: BackboneConfig) -> GlobalBackbone:
+def build_backbone(config: BackboneConfig, precision: Precision = "fp32") -> GlobalBackbone:
     """Instantiate the backbone ``config.name`` with its pretrained ImageNet weights."""
-    return GlobalBackbone(config)
+    return GlobalBackbone(config, precision=precision)

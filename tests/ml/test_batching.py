@@ -1,0 +1,135 @@
+"""Dynamic micro-batching: each caller its own answer, its own error, within the wait bound."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from service.ml.batching import MicroBatcher
+from service.ml.pipeline import FeaturePipeline
+from service.ml.presets import resolve_preset
+from tests.conftest import gardens_point_day_night
+
+
+class Recorder:
+    """A batched function that records its batch sizes and takes ``cost_s`` per call."""
+
+    def __init__(self, cost_s: float = 0.0) -> None:
+        self.cost_s = cost_s
+        self.sizes: list[int] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, items: list[int]) -> list[int]:
+        with self.lock:
+            self.sizes.append(len(items))
+        time.sleep(self.cost_s)
+        for item in items:
+            if item < 0:
+                raise ValueError(f"negative input {item}")
+        return [item * item for item in items]
+
+
+def test_concurrent_callers_each_get_their_own_result() -> None:
+    run = Recorder(cost_s=0.002)
+    batcher = MicroBatcher(run, window_s=0.01, max_batch=8)
+    with ThreadPoolExecutor(32) as pool:
+        results = list(pool.map(batcher.submit, range(500)))
+    assert results == [i * i for i in range(500)]
+    assert sum(run.sizes) == 500
+    assert max(run.sizes) > 1, "concurrent callers never shared a batch"
+    assert max(run.sizes) <= 8
+    assert batcher.stats.items == 500 and batcher.stats.largest == max(run.sizes)
+
+
+def test_a_failing_input_fails_only_its_own_caller() -> None:
+    batcher = MicroBatcher(Recorder(cost_s=0.001), window_s=0.02, max_batch=16)
+    inputs = [3, -1, 5, 7, -2, 11] * 5
+
+    def call(item: int) -> int | str:
+        try:
+            return batcher.submit(item)
+        except ValueError as exc:
+            return str(exc)
+
+    with ThreadPoolExecutor(len(inputs)) as pool:
+        results = list(pool.map(call, inputs))
+    want = [f"negative input {i}" if i < 0 else i * i for i in inputs]
+    assert results == want
+    assert batcher.stats.largest > 1
+
+
+def test_no_caller_waits_longer_than_the_window_plus_its_inference() -> None:
+    window_s, cost_s = 0.05, 0.03
+    batcher = MicroBatcher(Recorder(cost_s=cost_s), window_s=window_s, max_batch=4)
+    waits: list[float] = []
+    lock = threading.Lock()
+
+    def call(item: int) -> None:
+        time.sleep(0.013 * (item % 7))  # staggered arrivals: some lead, some join
+        start = time.perf_counter()
+        assert batcher.submit(item) == item * item
+        with lock:
+            waits.append(time.perf_counter() - start)
+
+    threads = [threading.Thread(target=call, args=(i,)) for i in range(40)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(waits) == 40
+    slack = 0.1  # thread scheduling on a shared machine
+    assert max(waits) <= window_s + cost_s + slack, max(waits)
+
+
+def test_a_full_batch_runs_without_waiting_for_the_window() -> None:
+    batcher = MicroBatcher(Recorder(), window_s=5.0, max_batch=4)
+    start = time.perf_counter()
+    with ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(batcher.submit, [1, 2, 3, 4])) == [1, 4, 9, 16]
+    assert time.perf_counter() - start < 2.0
+
+
+def test_zero_window_calls_alone_and_bad_settings_are_refused() -> None:
+    run = Recorder()
+    assert MicroBatcher(run, window_s=0.0, max_batch=8).submit(3) == 9
+    assert run.sizes == [1]
+    with pytest.raises(ValueError):
+        MicroBatcher(run, window_s=-1.0, max_batch=8)
+    with pytest.raises(ValueError):
+        MicroBatcher(run, window_s=0.01, max_batch=0)
+
+
+def test_batched_pipeline_gives_each_concurrent_frame_its_own_features() -> None:
+    """Real CNNs, distinct real frames from many threads: no mix-ups."""
+    from service.ml.images import decode_image
+
+    frames = [decode_image(gardens_point_day_night(i, "query")) for i in range(6)]
+    alone = FeaturePipeline(resolve_preset("fast"), precision="fp32")
+    batched = FeaturePipeline(
+        resolve_preset("fast"), precision="fp32", batch_window_ms=50.0, max_batch=6
+    )
+    want = [alone.extract(rgb) for rgb in frames]
+    with ThreadPoolExecutor(6) as pool:
+        got = list(pool.map(batched.extract, frames * 2))
+    assert batched.batcher.stats.largest > 1
+    for i, features in enumerate(got):
+        reference = want[i % 6]
+        assert np.allclose(features.global_vector, reference.global_vector, atol=1e-4)
+        assert float(features.local_vector @ reference.local_vector) >= 0.999
+        assert features.local.count == pytest.approx(reference.local.count, abs=2)
+
+
+def test_batching_settings_let_a_batch_fill(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from service.concurrency import default_workers
+    from service.config import Settings
+
+    on = Settings(data_dir=tmp_path, batch_window_ms=5, max_batch=8, torch_threads=1)
+    assert on.inference_workers == 8 * default_workers(1)
+    assert on.pipeline_options() == ("auto", 5.0, 8)
+    assert Settings(data_dir=tmp_path).inference_workers is None  # off: unchanged default
+    chosen = Settings(data_dir=tmp_path, batch_window_ms=5, inference_workers=3)
+    assert chosen.inference_workers == 3

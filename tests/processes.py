@@ -1,0 +1,82 @@
+"""Real LoopNet processes for tests that need them: ``loopnet serve`` on a free port, keys
+written straight into its database (as ``loopnet keys create`` does)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+
+from tests.conftest import TEST_LONG_SIDE, TEST_MAX_KEYPOINTS
+
+LOOPNET = [sys.executable, "-m", "service.cli"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def service_env(data_dir: Path, **extra: str) -> dict[str, str]:
+    return {
+        **os.environ,
+        "LOOPNET_DATA_DIR": str(data_dir),
+        "LOOPNET_LONG_SIDE": str(TEST_LONG_SIDE),
+        "LOOPNET_MAX_KEYPOINTS": str(TEST_MAX_KEYPOINTS),
+        "LOOPNET_PORT": str(free_port()),
+        **extra,
+    }
+
+
+@contextmanager
+def serving(env: dict[str, str], *, wait: bool = True, timeout: float = 120) -> Iterator[str]:
+    """Run ``loopnet serve``; yields its URL (once ready, unless ``wait`` is false)."""
+    url = f"http://127.0.0.1:{env['LOOPNET_PORT']}"
+    server = subprocess.Popen(
+        [*LOOPNET, "serve"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        deadline = time.monotonic() + timeout
+        while wait:
+            try:
+                if httpx.get(f"{url}/v1/ready").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert server.poll() is None, server.stdout.read()  # type: ignore[union-attr]
+            assert time.monotonic() < deadline, f"server not ready in {timeout} s"
+            time.sleep(0.3)
+        yield url
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+
+
+def create_token(data_dir: Path, name: str, role: str, atlases: tuple[str, ...] = ()) -> str:
+    """A new API key in the service's database (migrated first); returns its token."""
+    from service.config import Settings
+    from service.fleet.keys import Role, create_key
+    from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
+
+    url = Settings(data_dir=data_dir).resolved_database_url
+    data_dir.mkdir(parents=True, exist_ok=True)
+    upgrade_database(url)
+    engine = make_engine(url)
+    try:
+        with transaction(make_session_factory(engine)) as session:
+            return create_key(session, name=name, role=Role[role], atlases=list(atlases)).token
+    finally:
+        engine.dispose()

@@ -1,0 +1,126 @@
+"""Bad field values through the HTTP API on SQLite and PostgreSQL: deep JSON, NUL characters,
+retraining parameters the worker could never use, and a robot key's frames without robot_id."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.fleet.keys import Role, create_key
+from service.storage.db import transaction
+from tests.api.helpers import create_atlas, stored_state
+from tests.conftest import gardens_point_day_night, make_settings, wait_ready
+
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def client(request: pytest.FixtureRequest, tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
+    """The real app with an atlas ``campus`` and a submap ``s0``, on each database."""
+    from service.api.app import create_app
+
+    database = {}
+    if request.param == "postgresql":
+        database["database_url"] = request.getfixturevalue("postgres_url")
+    settings = make_settings(tmp_path / "data", **database)
+    with TestClient(create_app(settings, pipeline=pipeline)) as test_client:
+        wait_ready(test_client)
+        create_atlas(test_client)
+        yield test_client
+
+
+def frame_image() -> dict[str, tuple[str, bytes]]:
+    return {"image": ("f.jpg", gardens_point_day_night(2, "ref"))}
+
+
+@pytest.mark.parametrize("field", ["pose", "intrinsics"])
+def test_deeply_nested_json_fields_are_422(client: TestClient, field: str) -> None:
+    before = stored_state(client)
+    response = client.post(
+        "/v1/atlases/campus/frames",
+        data={"submap": "s0", "robot_id": "r1", field: DEEP},
+        files=frame_image(),
+    )
+    assert response.status_code == 422, response.text
+    assert "nested too deeply" in response.json()["detail"]
+    assert stored_state(client) == before
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "payload"),
+    [
+        ("POST", "/v1/atlases", {"name": "a", "description": "before\x00after"}),
+        ("POST", "/v1/atlases/campus/submaps", {"name": "s\x00"}),
+        ("POST", "/v1/keys", {"name": "ops\x00", "role": "operator"}),
+        ("GET", "/v1/atlases/cam%00pus", None),
+    ],
+)
+def test_nul_characters_in_text_are_422_on_every_database(
+    client: TestClient, method: str, path: str, payload: dict | None
+) -> None:
+    before = stored_state(client)
+    atlases = client.get("/v1/atlases").json()
+    response = client.request(method, path, json=payload)
+    assert response.status_code == 422, response.text
+    assert {"detail", "error"} <= set(response.json())
+    assert stored_state(client) == before and client.get("/v1/atlases").json() == atlases
+
+
+def test_nul_characters_in_form_fields_are_422(client: TestClient) -> None:
+    before = stored_state(client)
+    for data in ({"submap": "s0\x00", "robot_id": "r1"}, {"submap": "s0", "robot_id": "r\x001"}):
+        response = client.post("/v1/atlases/campus/frames", data=data, files=frame_image())
+        assert response.status_code == 422, response.text
+    assert stored_state(client) == before
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"embed_dim": 1409}, "fused input size 1408"),
+        ({"embed_dim": 4096}, "fused input size 1408"),
+        ({"seed": 2**64}, "seed must be in"),
+        ({"seed": 10**30}, "seed must be in"),
+        ({"classification_weight": 0, "contrastive_weight": 0}, "loss weight must be positive"),
+        ({"shots": 101}, "less than or equal to 100"),
+        ({"train": ["backbone"]}, "'fusion', 'similarity' or 'classifier'"),
+    ],
+)
+def test_retraining_parameters_the_worker_cannot_use_are_422_at_submit(
+    client: TestClient, params: dict, message: str
+) -> None:
+    response = client.post("/v1/atlases/campus/jobs", json={"kind": "retrain", "params": params})
+    assert response.status_code == 422, response.text
+    assert message in response.json()["detail"]
+    assert client.get("/v1/atlases/campus/jobs").json() == []
+
+
+def test_a_robot_keys_frames_need_no_robot_id(client: TestClient) -> None:
+    sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+    with transaction(sessions) as session:
+        husky = create_key(session, name="husky-1", role=Role.robot, atlases=["campus"]).token
+        admin = create_key(session, name="root", role=Role.admin, atlases=[]).token
+    client.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
+    as_husky = {"Authorization": f"Bearer {husky}"}
+    frame = client.post(
+        "/v1/atlases/campus/frames", data={"submap": "s0"}, files=frame_image(), headers=as_husky
+    )
+    assert frame.status_code == 201, frame.text
+    assert frame.json()["robot_id"] == "husky-1"
+    observed = client.post(
+        "/v1/atlases/campus/observe", data={"submap": "s0"}, files=frame_image(), headers=as_husky
+    )
+    assert observed.status_code == 201, observed.text
+    # any other caller still names the robot
+    before = stored_state(client)
+    nameless = client.post(
+        "/v1/atlases/campus/frames",
+        data={"submap": "s0"},
+        files=frame_image(),
+        headers={"Authorization": f"Bearer {admin}"},
+    )
+    assert nameless.status_code == 422 and "robot_id is required" in nameless.json()["detail"]
+    assert stored_state(client) == before

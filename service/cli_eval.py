@@ -1,5 +1,6 @@
-"""``loopnet eval``: run every method on one dataset folder and write the report (the
-evaluation modules are imported only when the command runs)."""
+"""``loopnet eval`` and ``loopnet eval-online``: run every method on one dataset folder (or
+replay one trajectory) and write the report (the evaluation modules are imported only when
+the command runs)."""
 
 from __future__ import annotations
 
@@ -67,7 +68,93 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
     )
     ev.add_argument("--verify-top", type=int, default=5, help="candidates verified per query")
     ev.add_argument("--query-stride", type=int, default=1, help="keep every n-th query only")
+    ev.add_argument(
+        "--sequence",
+        default="",
+        help="comma-separated sequence lengths L: add <method>+seqL rows and full SeqSLAM",
+    )
+    ev.add_argument(
+        "--sequence-contrast",
+        type=int,
+        default=0,
+        help="sequence rows: local contrast window in frames (0: whole-map z-scores)",
+    )
+    ev.add_argument(
+        "--sequence-seed-frames",
+        type=int,
+        default=1,
+        help="sequence rows: newest query frames whose best matches propose candidates "
+        "(1: the service's; 0: all)",
+    )
     ev.set_defaults(func=cmd_eval)
+    add_online_parser(commands)
+
+
+def add_online_parser(commands: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    on = commands.add_parser(
+        "eval-online",
+        help="replay one robot's trajectory in order and score its loop closures",
+        description=(
+            "Each frame asks about every earlier frame but the robot's own recent ones, then "
+            "joins the map. Trajectory: two frame-aligned traversals driven one after the "
+            "other (DATASET), or --images with a FAB-MAP-style --ground-truth matrix."
+        ),
+    )
+    on.add_argument("dataset", type=Path, nargs="?", help="a traversals dataset folder")
+    on.add_argument("--images", type=Path, help="one trajectory's image folder")
+    on.add_argument("--ground-truth", type=Path, help="loop-closure matrix (.mat/.npy/.csv)")
+    on.add_argument("--variable", help="the matrix's variable in a .mat file")
+    on.add_argument("--tolerance", type=int, help="traversals: frame tolerance (default 1)")
+    on.add_argument("--out", type=Path, required=True, help="report folder (created)")
+    on.add_argument("--preset", default="default")
+    on.add_argument("--long-side", type=int)
+    on.add_argument("--extractors", default="xfeat", help="comma-separated local extractors")
+    on.add_argument("--alphas", default="0.7,0", help="fusion weights (0 = global only)")
+    on.add_argument("--sequence", default="1,5,10", help="sequence lengths (1 = single frame)")
+    on.add_argument("--exclude-recent", type=int, default=20)
+    on.add_argument("--consistency", type=int, default=3, help="agreeing observations (k)")
+    on.add_argument("--cache-dir", type=Path, help="feature cache (loopnet eval's)")
+    on.set_defaults(func=cmd_eval_online)
+
+
+def cmd_eval_online(args: argparse.Namespace) -> int:
+    from service.evaluation.datasets import load_dataset
+    from service.evaluation.loop_ground_truth import (
+        trajectory_from_matrix,
+        trajectory_from_traversals,
+    )
+    from service.evaluation.online import OnlineConfig, run_online
+    from service.evaluation.runner import command_line
+
+    if args.images is not None and args.ground_truth is not None:
+        trajectory = trajectory_from_matrix(args.images, args.ground_truth, args.variable)
+    elif args.dataset is not None:
+        dataset = load_dataset(args.dataset, layout="traversals", tolerance=args.tolerance)
+        trajectory = trajectory_from_traversals(dataset)
+    else:
+        raise SystemExit("give a traversals DATASET, or --images and --ground-truth")
+    methods: list[tuple[str, str, float]] = []
+    for extractor in _csv_list(str, args.extractors):
+        for alpha in _csv_list(float, args.alphas):
+            if alpha == 0.0 and any(m[2] == 0.0 for m in methods):
+                continue  # the global branch is the same for every extractor
+            name = "global-only" if alpha == 0.0 else f"loopnet-{extractor}-alpha{alpha:g}"
+            methods.append((name, extractor, alpha))
+    config = OnlineConfig(
+        trajectory=trajectory,
+        output=args.out,
+        methods=tuple(methods),
+        lengths=_csv_list(int, args.sequence),
+        preset=args.preset,
+        long_side=args.long_side,
+        cache_dir=args.cache_dir,
+        exclude_recent=args.exclude_recent,
+        consistency=args.consistency,
+        command=command_line(sys.argv[1:] if args.argv is None else args.argv),
+    )
+    run_online(config)
+    print((args.out / "online.md").read_text())
+    return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -111,6 +198,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         query_stride=args.query_stride,
+        sequence=_csv_list(int, args.sequence),
+        sequence_contrast=args.sequence_contrast,
+        sequence_seed_frames=args.sequence_seed_frames,
         precision=args.precision,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )

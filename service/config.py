@@ -77,6 +77,33 @@ class Settings(BaseSettings):
     exclude_recent_seconds: float = Field(
         30.0, ge=0.0, description="Nor do its frames taken within T seconds of the query."
     )
+    sequence_length: int = Field(
+        10,
+        ge=0,
+        le=50,
+        description="Default frames of a robot's sequence scored with each query/observe that "
+        "names the robot (SeqSLAM-like; 0: off). A request's sequence_length overrides it.",
+    )
+    sequence_max_gap_seconds: float = Field(
+        10.0,
+        gt=0.0,
+        description="A robot's frames further apart in time than this start a new sequence.",
+    )
+    sequence_seed_frames: int = Field(
+        1,
+        ge=0,
+        le=50,
+        description="Frames of a robot's sequence, newest first, whose best matches propose "
+        "places to score (0: all). 1 uses the query's own search; each more frame costs one "
+        "index search per request.",
+    )
+    consistency_frames: int = Field(
+        3,
+        ge=1,
+        le=20,
+        description="Consecutive agreeing observations of a robot before a loop closure is "
+        "accepted (DBoW2's temporal consistency; 1: no check).",
+    )
     max_upload_bytes: int = Field(ImageLimits.max_bytes, ge=1024)
     max_image_pixels: int = Field(ImageLimits.max_pixels, ge=1024)
     max_snapshot_bytes: int = Field(

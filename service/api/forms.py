@@ -58,6 +58,14 @@ RobotId = Annotated[
 Robots = Annotated[
     str, Form(description="Which frames may match: 'all' (default), 'own' or 'others'.")
 ]
+SequenceLength = Annotated[
+    int | None,
+    Form(
+        ge=0,
+        description="Frames of the robot's recent sequence to score (0: off; default: the "
+        "service's LOOPNET_SEQUENCE_LENGTH). Needs robot_id.",
+    ),
+]
 SubmapFilter = Annotated[str | None, Form(description="Only frames of this submap.")]
 Since = Annotated[float | None, Form(description="Only frames with timestamp >= since.")]
 Until = Annotated[float | None, Form(description="Only frames with timestamp <= until.")]

@@ -136,6 +136,20 @@ class SubmapPredictionOut(BaseModel):
     reason: str | None = Field(None, description="Why no prediction is given, when unavailable.")
 
 
+class SequenceOut(BaseModel):
+    score: float = Field(
+        description="Sequence score of the best place: standardised similarities summed along "
+        "the aligned reference frames / sqrt(length); higher is better."
+    )
+    length: int = Field(description="Frames of the robot's sequence actually aligned.")
+    aligned: list[int | None] = Field(
+        description="The reference frame aligned with each frame of the sequence, oldest first "
+        "(the last one with this query); null where the reference trajectory had none."
+    )
+    speed: float = Field(description="Reference frames passed per query frame.")
+    frame_id: int = Field(description="The reference frame aligned with this query.")
+
+
 class QueryOut(BaseModel):
     atlas: str
     model_version: int
@@ -165,6 +179,20 @@ class QueryOut(BaseModel):
         "(LOOPNET_LOOP_SCORE_MIN + log10 of the frames in the atlas: the best of N impostors is N "
         "times likelier to pass); null when the model version is not calibrated and the "
         "similarity threshold decided.",
+    )
+    status: Literal["loop", "candidate", "new_place"] = Field(
+        description="'loop': loop_closure holds and the robot's last consistency_frames "
+        "observations agree on one place; 'candidate': loop_closure holds, not yet "
+        "consistent; 'new_place': nothing passes. Without a robot: 'loop' or 'new_place'."
+    )
+    new_place: bool = Field(description="Nothing in the atlas passes: the robot is somewhere new.")
+    consistent: int = Field(
+        description="Consecutive agreeing observations of the robot, this one included."
+    )
+    sequence: SequenceOut | None = Field(
+        None,
+        description="Sequence matching over the robot's recent frames; null without a robot "
+        "or with sequence_length 0.",
     )
 
 

@@ -146,6 +146,7 @@ class AtlasService:
         robot_id: str | None = None,
         query_filter: QueryFilter | None = None,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
     ) -> QueryResult:
         """The frames of the atlas most similar to an image, verified, and the loop-closure
         decision. ``robot_id`` is the robot asking (its recent frames never match)."""
@@ -155,6 +156,7 @@ class AtlasService:
             k=k,
             query_filter=query_filter or self.query_filter(robot_id=robot_id),
             intrinsics=intrinsics,
+            sequence_length=sequence_length,
         )
 
     def query_features(
@@ -166,14 +168,18 @@ class AtlasService:
         robot_id: str | None = None,
         query_filter: QueryFilter | None = None,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
+        timestamp: float | None = None,
     ) -> QueryResult:
         """Search with already extracted features (by :meth:`extract`) and verify."""
         return self.queries.query_features(
             atlas_name=atlas_name,
             features=features,
             k=k,
-            query_filter=query_filter or self.query_filter(robot_id=robot_id),
+            query_filter=query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp),
             intrinsics=intrinsics,
+            sequence_length=sequence_length,
+            timestamp=timestamp,
         )
 
     def observe(
@@ -188,6 +194,7 @@ class AtlasService:
         intrinsics: Intrinsics | None = None,
         k: int = 5,
         query_filter: QueryFilter | None = None,
+        sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
         """:meth:`AtlasQueries.observe` with the observing robot's default filter."""
         return self.queries.observe(
@@ -200,6 +207,31 @@ class AtlasService:
             pose=pose,
             intrinsics=intrinsics,
             k=k,
+            sequence_length=sequence_length,
+        )
+
+    def observe_features(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        timestamp: float | None = None,
+        k: int = 5,
+        query_filter: QueryFilter | None = None,
+        sequence_length: int | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """:meth:`AtlasQueries.observe_features` with the observing robot's default filter."""
+        return self.queries.observe_features(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            query_filter=query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp),
+            timestamp=timestamp,
+            k=k,
+            sequence_length=sequence_length,
         )
 
 

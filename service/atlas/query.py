@@ -15,7 +15,8 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.filters import QueryFilter, resolve
-from service.atlas.ingest import FrameIngest, validate_frame_fields
+from service.atlas.ingest import FrameIngest
+from service.atlas.observe import Observations, with_extraction_timings
 from service.atlas.results import (
     Candidate,
     QueryResult,
@@ -23,13 +24,21 @@ from service.atlas.results import (
     VerificationSummary,
     place_margin,
 )
+from service.atlas.sequences import (
+    SERVICE_SEQUENCE,
+    RobotContext,
+    RobotEvidence,
+    SequenceScorer,
+    single_frame_verdict,
+)
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
 from service.metrics import observe_stages
 from service.ml.features import FrameFeatures, LocalFeatures
-from service.ml.geometry import Intrinsics, Pose
+from service.ml.geometry import Intrinsics
+from service.ml.sequences import PlaceStatus
 from service.ml.verification import Verification, View, decide, rerank
 from service.storage import repository as repo
 from service.storage.feature_store import load_local_features
@@ -38,6 +47,7 @@ from service.storage.models import Atlas, Frame
 # Frames searched per query beyond k, so the margin finds the best other place even when the
 # top k all lie in the match's submap.
 MARGIN_POOL = 32
+SEQUENCE_MAX = 50  # longest sequence a request may ask for
 
 
 @dataclass(frozen=True)
@@ -48,10 +58,12 @@ class Found:
     frames: dict[int, Frame]
     names: dict[int, str]
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
+    evidence: RobotEvidence | None  # the robot's sequence and previous observations
 
 
-class AtlasQueries:
-    """Query an atlas with an image or extracted features; observe (query, then insert)."""
+class AtlasQueries(Observations):
+    """Query an atlas with an image or extracted features; observe (query, then insert: see
+    :class:`~service.atlas.observe.Observations`)."""
 
     def __init__(
         self,
@@ -66,10 +78,24 @@ class AtlasQueries:
         self.states = states
         self.ingest = ingest
         self.verification = verification
+        self.sequences = SequenceScorer(settings)
 
     def check_k(self, k: int) -> None:
         if not 1 <= k <= self.settings.max_k:
             raise InvalidInput(f"k must be between 1 and {self.settings.max_k}, got {k}")
+
+    def robot_context(
+        self, query_filter: QueryFilter, timestamp: float | None, sequence_length: int | None
+    ) -> RobotContext | None:
+        """The asking robot (the filter's) and its sequence length; None without a robot."""
+        length = self.settings.sequence_length if sequence_length is None else sequence_length
+        if not 0 <= length <= SEQUENCE_MAX:
+            raise InvalidInput(
+                f"sequence_length must be between 0 and {SEQUENCE_MAX}, got {length}"
+            )
+        if query_filter.robot_id is None:
+            return None
+        return RobotContext(query_filter.robot_id, timestamp, length)
 
     def _check_targets(
         self, session: Session, atlas_name: str, query_filter: QueryFilter, submap: str | None
@@ -88,55 +114,19 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
     ) -> QueryResult:
         """The frames of the atlas most similar to an image, verified, and the loop-closure
-        decision. The filter's robot is the robot asking (its recent frames never match)."""
+        decision. The filter's robot is the robot asking (its recent frames never match, and
+        they form the query's sequence)."""
         total_start = time.perf_counter()
         self.check_k(k)
+        robot = self.robot_context(query_filter, query_filter.timestamp, sequence_length)
         with self.sessions() as session:
             self._check_targets(session, atlas_name, query_filter, None)
         features, decode_ms = self.ingest.extract(image_bytes)
-        result = self._search(atlas_name, features, k, query_filter, intrinsics)
+        result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
         return with_extraction_timings(result, features, decode_ms, total_start)
-
-    def observe(
-        self,
-        *,
-        atlas_name: str,
-        submap_name: str,
-        robot_id: str,
-        image_bytes: bytes,
-        query_filter: QueryFilter,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
-        k: int = 5,
-    ) -> tuple[QueryResult, Frame]:
-        """Online SLAM: query with a robot's new keyframe, then insert it, in one call.
-
-        Everything is validated before the CNNs run; the query happens before the insert, so
-        the new frame is never its own match; the insert is one transaction, so a failure
-        writes nothing.
-        """
-        total_start = time.perf_counter()
-        validate_frame_fields(robot_id, timestamp)
-        self.check_k(k)
-        if query_filter.robot_id != robot_id:
-            raise InvalidInput("an observation's filter must be for the observing robot")
-        with self.sessions() as session:
-            self._check_targets(session, atlas_name, query_filter, submap_name)
-        features, decode_ms = self.ingest.extract(image_bytes)
-        result = self._search(atlas_name, features, k, query_filter, intrinsics)
-        frame = self.ingest.store(
-            atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
-            features=features,
-            timestamp=timestamp,
-            pose=pose,
-            intrinsics=intrinsics,
-        )
-        return with_extraction_timings(result, features, decode_ms, total_start), frame
 
     def query_features(
         self,
@@ -146,11 +136,14 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None = None,
+        sequence_length: int | None = None,
+        timestamp: float | None = None,
     ) -> QueryResult:
         """Search with already extracted features and verify the best candidates; timings
         cover the heads, the search and the verification."""
         self.check_k(k)
-        return self._search(atlas_name, features, k, query_filter, intrinsics)
+        robot = self.robot_context(query_filter, timestamp, sequence_length)
+        return self._search(atlas_name, features, k, query_filter, intrinsics, robot)
 
     def _search(
         self,
@@ -159,6 +152,7 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         intrinsics: Intrinsics | None,
+        robot: RobotContext | None = None,
     ) -> QueryResult:
         with self.sessions() as session:
             atlas = self.ingest.checked_atlas(session, atlas_name)
@@ -169,7 +163,7 @@ class AtlasQueries:
             embedding = model.embed(features)
             prediction = model.predict_submap(features)
             timings["heads"] = (time.perf_counter() - start) * 1000.0
-            found = self._find(session, atlas, state, embedding, k, query_filter, timings)
+            found = self._find(session, atlas, state, embedding, k, query_filter, timings, robot)
         scores = model.score(np.array([c.similarity for c in found.candidates], np.float64))
         if scores is not None:
             for candidate, score in zip(found.candidates, scores, strict=True):
@@ -222,17 +216,23 @@ class AtlasQueries:
         evidence = None
         if match is not None:
             evidence = match.similarity if score_threshold is None else match.score
+        loop_closure = decide(
+            evidence,
+            verifications.get(match.frame_id) if match else None,
+            threshold=threshold if score_threshold is None else score_threshold,
+            verify=enabled,
+        )
+        verdict = (
+            found.evidence.verdict(match.frame_id if match else None, loop_closure)
+            if found.evidence is not None
+            else single_frame_verdict(loop_closure)
+        )
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
             match=match,
             candidates=candidates[:k],
-            loop_closure=decide(
-                evidence,
-                verifications.get(match.frame_id) if match else None,
-                threshold=threshold if score_threshold is None else score_threshold,
-                verify=enabled,
-            ),
+            loop_closure=loop_closure,
             threshold=threshold,
             score_threshold=score_threshold,
             predicted_submap=guess,
@@ -245,6 +245,10 @@ class AtlasQueries:
                 verified_candidates=len(verifications),
                 min_inliers=min_inliers if enabled else None,
             ),
+            status=verdict.status.value,
+            new_place=verdict.status == PlaceStatus.NEW_PLACE,
+            consistent=verdict.consistent,
+            sequence=found.evidence.sequence if found.evidence is not None else None,
         )
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
@@ -264,19 +268,26 @@ class AtlasQueries:
         k: int,
         query_filter: QueryFilter,
         timings: dict[str, float],
+        robot: RobotContext | None,
     ) -> Found:
         """Resolve the filter, search the index, read the hits' frames and the stored
-        keypoints of those to verify, all in the request's one search session."""
+        keypoints of those to verify, and the robot's sequence evidence, all in the request's
+        one search session."""
         selection = resolve(session, atlas, query_filter)
         top = self.verification.config.top
+        pool = max(k, top, MARGIN_POOL)
+        if robot is not None and robot.sequence_length:
+            pool = max(pool, SERVICE_SEQUENCE.seeds)
         start = time.perf_counter()
         hits = state.index.search(
-            embedding,
-            max(k, top, MARGIN_POOL),
-            include=selection.include,
-            exclude=selection.exclude,
+            embedding, pool, include=selection.include, exclude=selection.exclude
         )
         timings["search"] = (time.perf_counter() - start) * 1000.0
+        evidence = None
+        if robot is not None:
+            start = time.perf_counter()
+            evidence = self.sequences.answer(session, state, robot, embedding, hits, selection)
+            timings["sequence"] = (time.perf_counter() - start) * 1000.0
         names = repo.submap_names(session, atlas_id=atlas.id)
         frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])
         candidates = [
@@ -287,7 +298,7 @@ class AtlasQueries:
         stored: dict[int, LocalFeatures] = {}
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
-        return Found(candidates, frames, names, stored)
+        return Found(candidates, frames, names, stored, evidence)
 
 
 def loop_score_threshold(score_min: float, frames: int) -> float:
@@ -296,16 +307,3 @@ def loop_score_threshold(score_min: float, frames: int) -> float:
     ``s`` with probability ``10**-s`` (the calibration's meaning), the best of ``frames`` about
     ``frames`` times as often. One setting then means the same on small and large atlases."""
     return round(score_min + math.log10(max(frames, 1)), 4)
-
-
-def with_extraction_timings(
-    result: QueryResult, features: FrameFeatures, decode_ms: float, total_start: float
-) -> QueryResult:
-    result.timings_ms = {
-        "decode": round(decode_ms, 3),
-        **{name: round(ms, 3) for name, ms in features.timings_ms.items()},
-        **result.timings_ms,
-        "total": round((time.perf_counter() - total_start) * 1000.0, 3),
-    }
-    result.query_thumbnail = features.thumbnail
-    return result

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from service.atlas.sequences import SequenceAnswer
 from service.ml.verification import RelativePose
 
 
@@ -54,6 +55,12 @@ class QueryResult:
         default_factory=lambda: VerificationSummary(enabled=False)
     )
     score_threshold: float | None = None  # set when the decision used the calibrated score
+    # "loop" (accepted: consistent over the robot's last observations), "candidate" (passes,
+    # not yet consistent) or "new_place" (nothing passes)
+    status: str = "new_place"
+    new_place: bool = True  # status == "new_place", a field of its own
+    consistent: int = 0  # consecutive agreeing observations, this one included
+    sequence: SequenceAnswer | None = None
     query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
 
 

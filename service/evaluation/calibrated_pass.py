@@ -56,8 +56,13 @@ def calibrated_methods(
     k: int,
     with_global_only: bool,
     config: CalibrationConfig = DEFAULT_CALIBRATION,
+    vectors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[MethodResult]:
-    """The calibrated service row ``loopnet-<extractor>`` and its ablations."""
+    """The calibrated service row ``loopnet-<extractor>`` and its ablations.
+
+    ``vectors``, when given, receives the references' and queries' unit embeddings of the
+    service row (and of ``global-only``) by row name: what the sequence rows score on.
+    """
     n_refs = len(dataset.references)
     ms = result.stage_ms
     fused_extraction = np.add(np.add(ms["decode"], ms["local_features"]), ms["global_features"])[
@@ -81,6 +86,8 @@ def calibrated_methods(
 
     refs = (fitted.local_branch, fitted.global_branch)
     queries = (query_local, query_global)
+    if vectors is not None:
+        vectors[f"loopnet-{extractor}"] = (calibration.fuse(*refs), calibration.fuse(*queries))
     ranking, search_ms = rank(calibration, refs, queries)
     cosine_top = ranking.scores[:, 0].copy()
     ranking = Ranking(ranking.indices, calibration.score(ranking.scores))
@@ -124,6 +131,8 @@ def calibrated_methods(
             continue
         variant = calibration.with_alpha(alpha)
         ranking, search_ms = rank(variant, refs, queries)
+        if alpha == 0.0 and vectors is not None:
+            vectors["global-only"] = (variant.fuse(*refs), variant.fuse(*queries))
         if alpha == 0.0:
             name, label = (
                 "global-only",

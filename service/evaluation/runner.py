@@ -7,7 +7,10 @@ Methods, all on the same reference/query split and ground truth:
   local extractor, at the preset's fusion weight;
 - ablations on the same stored vectors: fused at the other alphas, local only (alpha = 1) and
   global only (alpha = 0; the backbone is the same for every extractor, so it is listed once);
-- the classical baselines (bag of ORB words; SeqSLAM's single-frame SAD).
+- the classical baselines (bag of ORB words; SeqSLAM's single-frame SAD);
+- with ``sequence``: ``<method>+seqL`` rows scoring queries in dataset order through the
+  service's sequence code (LoopNet per extractor and global only, each on the calibrated and
+  the uncalibrated vectors), and full SeqSLAM at the same L.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from tqdm import tqdm
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
+from service.evaluation.baselines.seqslam import full_seqslam
 from service.evaluation.calibrated_pass import DEFAULT_CALIBRATION, calibrated_methods
 from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
 from service.evaluation.image_check import unreadable_images
@@ -41,6 +45,7 @@ from service.evaluation.protocol import (
     evaluate_ranking,
 )
 from service.evaluation.retraining_pass import PROTOCOLS, RetrainingRow, retraining_rows
+from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.evaluation.verification_pass import (
     KeypointCache,
@@ -48,13 +53,16 @@ from service.evaluation.verification_pass import (
     verification_methods,
 )
 from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
+from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
-from service.ml.pipeline import FeaturePipeline
+from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.presets import ModelPreset, resolve_preset
+from service.ml.sequences import SequenceSettings
 
 log = logging.getLogger(__name__)
 
 TARGET_MARGIN = 0.10
+SPEEDS = SequenceSettings().speeds
 UNCALIBRATED = "loopnet-uncalibrated"  # kind of today's service-path row, kept for comparison
 EXTRACTOR_LABELS = {"disk": "DISK", "xfeat": "XFeat"}
 
@@ -82,6 +90,10 @@ class EvalConfig:
             extractor's ranking adds a row each; empty: none.
         verify_top: candidates verified per query.
         query_stride: keep every n-th query only (bounded runs on long datasets).
+        sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
+        sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
+        sequence_seed_frames: newest query frames whose best matches propose candidates (the
+            service's 1: its own search hits; 0: every frame's).
         precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
             precision are reused in another, so give each its own ``cache_dir``.
     """
@@ -111,6 +123,9 @@ class EvalConfig:
     verify: tuple[str, ...] = ()
     verify_top: int = 5
     query_stride: int = 1
+    sequence: tuple[int, ...] = ()
+    sequence_contrast: int = 0
+    sequence_seed_frames: int = 1
     precision: str = "fp32"
 
 
@@ -200,7 +215,7 @@ def _loopnet_methods(
 
 def _baseline_method(
     name: str, long_side: int, dataset: Dataset, submap_of: Sequence[int], k: int
-) -> tuple[MethodResult, dict[str, dict[str, float]]]:
+) -> tuple[MethodResult, dict[str, dict[str, float]], np.ndarray]:
     baseline = build_baseline(name, long_side)
     describe_ms: list[float] = []
     described = []
@@ -214,7 +229,8 @@ def _baseline_method(
     baseline.fit(described[:n_refs])
     fit_ms = (time.perf_counter() - start) * 1000.0
     start = time.perf_counter()
-    ranking = rank_by_similarity(baseline.score(described[n_refs:]), k)
+    similarity = baseline.score(described[n_refs:])
+    ranking = rank_by_similarity(similarity, k)
     score_ms = (time.perf_counter() - start) * 1000.0 / max(len(dataset.queries), 1)
     method = evaluate_ranking(
         name,
@@ -230,13 +246,66 @@ def _baseline_method(
         "decode + describe": summary(describe_ms),
         "score vs all references (per query)": {"median": score_ms, "p95": score_ms, "n": 1},
     }
-    return method, stages
+    return method, stages, similarity
+
+
+def _unit_embeddings(result: PassResult, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """References' and queries' embeddings by untrained heads at ``alpha`` (the service's)."""
+    heads = LoopNetHeads(
+        HeadsConfig(
+            local_dim=result.reference_vectors[0].shape[1],
+            global_dim=result.reference_vectors[1].shape[1],
+            alpha=alpha,
+        )
+    ).eval()
+    return embed_vectors(heads, *result.reference_vectors), embed_vectors(
+        heads, *result.query_vectors
+    )
+
+
+SEQSLAM_VARIANTS = (
+    ("", "SeqSLAM full (contrast enhancement, window 10, + sequence search)", 10),
+    ("-raw", "SeqSLAM sequence search on raw SAD (no contrast enhancement)", None),
+)
+
+
+def _full_seqslam_methods(
+    similarity: np.ndarray,
+    single: MethodResult,
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    lengths: Sequence[int],
+    k: int,
+) -> list[MethodResult]:
+    """Full SeqSLAM on the SAD baseline's thumbnails (OpenSeqSLAM's enhancement window, and
+    without it), one row per variant and L."""
+    _, query_starts = dataset_trajectories(dataset)
+    rows = []
+    for suffix, label, window in SEQSLAM_VARIANTS:
+        for length in lengths:
+            start = time.perf_counter()
+            scores = full_seqslam(-similarity, length, window=window, query_starts=query_starts)
+            per_query = (time.perf_counter() - start) * 1000.0 / max(len(dataset.queries), 1)
+            rows.append(
+                evaluate_ranking(
+                    f"{single.name}{suffix}+seq{length}",
+                    f"{label} L={length}",
+                    "baseline",
+                    rank_by_similarity(scores, k),
+                    dataset,
+                    submap_of,
+                    query_ms=np.full(len(dataset.queries), per_query),
+                    details={"length": length, "window": window, "speeds": list(SPEEDS)},
+                )
+            )
+    return rows
 
 
 def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
-    loopnet = next((m for m in methods if m.kind == "loopnet"), None)
-    if loopnet is None:
-        return {"verdict": "no calibrated LoopNet row ran", "met": None}
+    # the calibrated row; today's uncalibrated one where no calibration could be fitted
+    loopnet = next((m for m in methods if m.kind == "loopnet"), None) or next(
+        m for m in methods if m.kind == UNCALIBRATED
+    )
     rivals = [
         m
         for m in methods
@@ -349,6 +418,8 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     skipped: dict[str, str] = {}
     first_pass: PassResult | None = None
     first_keypoints: KeypointCache | None = None
+    passes: list[PassResult] = []
+    calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     retraining: list[RetrainingRow] = []
 
     def report_so_far(partial: str | None) -> dict[str, Any]:
@@ -376,11 +447,10 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     # the calibrated rows need as many references as a calibration job does
     calibrates = len(dataset.references) >= CALIBRATION_MIN_FRAMES
     if not calibrates:
-        log.warning(
-            "no calibrated rows: %d references, a calibration needs %d",
-            len(dataset.references),
-            CALIBRATION_MIN_FRAMES,
+        skipped["calibration"] = (
+            f"{len(dataset.references)} references; a calibration needs {CALIBRATION_MIN_FRAMES}"
         )
+        log.warning("no calibrated rows: %s", skipped["calibration"])
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
         preset = resolve_preset(
             config.preset,
@@ -414,20 +484,26 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             if calibrates
             else None,
         )
-        calibrated = (
-            calibrated_methods(
-                dataset,
-                submap_of,
-                extractor,
-                EXTRACTOR_LABELS.get(extractor, extractor),
-                result,
-                alphas=config.alphas,
-                k=config.k,
-                with_global_only=first_pass is None,
+        try:
+            calibrated = (
+                calibrated_methods(
+                    dataset,
+                    submap_of,
+                    extractor,
+                    EXTRACTOR_LABELS.get(extractor, extractor),
+                    result,
+                    alphas=config.alphas,
+                    k=config.k,
+                    with_global_only=first_pass is None,
+                    vectors=calibrated_vectors,
+                )
+                if calibrates
+                else []
             )
-            if calibrates
-            else []
-        )
+        except ValueError as exc:  # too few references to fit a calibration (impostor pairs)
+            skipped[f"{extractor} calibration"] = str(exc)
+            log.warning("no calibrated rows for %s: %s", extractor, exc)
+            calibrated = []
         uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
         )
@@ -436,6 +512,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
+        passes.append(result)
         if first_pass is None:
             first_pass, first_keypoints = result, keypoints
         checkpoint("the next extractor's pass")
@@ -473,12 +550,46 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         methods += verified
         stages.update(verification_stages)
         checkpoint("the baselines")
+    if config.sequence:
+        bases = []
+        rows = {m.name: m for m in methods}
+        for result in passes:
+            extractor = result.preset.local.name
+            calibrated_row = f"loopnet-{extractor}"
+            if calibrated_row in calibrated_vectors:
+                bases.append((rows[calibrated_row], *calibrated_vectors[calibrated_row]))
+            bases.append(
+                (
+                    rows[f"{calibrated_row}-uncalibrated"],
+                    *_unit_embeddings(result, result.preset.alpha),
+                )
+            )
+        if "global-only" in calibrated_vectors:
+            bases.append((rows["global-only"], *calibrated_vectors["global-only"]))
+        if "global-only-uncalibrated" in rows:
+            bases.append((rows["global-only-uncalibrated"], *_unit_embeddings(first_pass, 0.0)))
+        methods += sequence_methods(
+            bases,
+            dataset,
+            submap_of,
+            config.sequence,
+            config.k,
+            SequenceSettings(
+                contrast_window=config.sequence_contrast,
+                seed_frames=config.sequence_seed_frames,
+            ),
+        )
+        checkpoint("the baselines")
     for name in config.baselines:
-        method, baseline_stages = _baseline_method(
+        method, baseline_stages, similarity = _baseline_method(
             name, first_pass.preset.local.long_side, dataset, submap_of, config.k
         )
         methods.append(method)
         stages[method.label] = baseline_stages
+        if config.sequence and name == "seqslam-sad":
+            methods += _full_seqslam_methods(
+                similarity, method, dataset, submap_of, config.sequence, config.k
+            )
         checkpoint("the remaining baselines and the plots")
 
     report = report_so_far(None)

@@ -173,8 +173,9 @@ CACHE_ARRAYS = ("paths", "stamps", "local", "global_", "keypoints", "image_size"
 
 
 class LocalFeatureCache:
-    """Every frame's keypoints, descriptors (float16, as the feature store keeps them) and
-    scores, beside the vector cache: calibration needs the descriptors themselves."""
+    """Each file's keypoints, descriptors (float16, as the feature store keeps them) and
+    scores, by resolved path, beside the vector cache: calibration needs the descriptors
+    themselves."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -183,27 +184,34 @@ class LocalFeatureCache:
     def for_vectors(vector_cache: Path) -> LocalFeatureCache:
         return LocalFeatureCache(vector_cache.with_name(vector_cache.stem + "-local.npz"))
 
-    def load(self) -> list[LocalFeatures] | None:
+    def load(self) -> dict[Path, LocalFeatures]:
+        """The cached files' features; empty when the cache is missing or of an older format."""
         if not self.path.is_file():
-            return None
+            return {}
         with np.load(self.path) as data:
-            offsets = data["offsets"]
+            if "paths" not in data.files:
+                return {}
+            paths, offsets = data["paths"], data["offsets"]
             keypoints, descriptors, scores = data["keypoints"], data["descriptors"], data["scores"]
-        return [
-            LocalFeatures(keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b])
-            for a, b in zip(offsets[:-1], offsets[1:], strict=True)
-        ]
+        return {
+            Path(str(name)): LocalFeatures(
+                keypoints[a:b], descriptors[a:b].astype(np.float32), scores[a:b]
+            )
+            for name, a, b in zip(paths, offsets[:-1], offsets[1:], strict=True)
+        }
 
-    def save(self, frames: Sequence[LocalFeatures]) -> None:
+    def save(self, frames: dict[Path, LocalFeatures]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        offsets = np.cumsum([0, *(f.count for f in frames)])
+        values = list(frames.values())
+        offsets = np.cumsum([0, *(f.count for f in values)])
         tmp = self.path.with_name(self.path.name + ".tmp.npz")
         np.savez(
             tmp,
+            paths=np.array([str(p) for p in frames], dtype=np.str_),
             offsets=offsets,
-            keypoints=np.concatenate([f.keypoints for f in frames]).astype(np.float32),
-            descriptors=np.concatenate([f.descriptors for f in frames]).astype(np.float16),
-            scores=np.concatenate([f.scores for f in frames]).astype(np.float32),
+            keypoints=np.concatenate([f.keypoints for f in values]).astype(np.float32),
+            descriptors=np.concatenate([f.descriptors for f in values]).astype(np.float16),
+            scores=np.concatenate([f.scores for f in values]).astype(np.float32),
         )
         tmp.replace(self.path)
 
@@ -237,18 +245,17 @@ def _frames(
     paths: Sequence[Path],
     cached: CachedFeatures | None,
     rows: dict[Path, int],
-    local: list[LocalFeatures] | None,
+    local: dict[Path, LocalFeatures],
     desc: str,
 ) -> Iterator[tuple[FrameFeatures, float, bool]]:
-    """Each image's features and decode time, from the cache where it has the file (with its
-    local features from ``local``, aligned with ``paths``)."""
+    """Each image's features and decode time, from the cache where it has the file (its
+    keypoints and descriptors from ``local``)."""
     dim = service.pipeline.local.descriptor_dim
-    for i, path in enumerate(tqdm(paths, desc=desc, unit="img", leave=False)):
+    for path in tqdm(paths, desc=desc, unit="img", leave=False):
         row = rows.get(path.resolve())
         if cached is not None and row is not None:
             features, decode_ms = cached.frame(row, dim)
-            if local is not None:
-                features.local = local[i]
+            features.local = local.get(path.resolve(), features.local)
             yield features, decode_ms, True
         else:
             yield (*service.extract(path.read_bytes()), False)
@@ -277,14 +284,11 @@ def run_service_pass(
     images = list(all_images(dataset))
     from_cache: list[bool] = []
     local_cache = LocalFeatureCache.for_vectors(path) if path is not None else None
-    cached_local = local_cache.load() if local_cache is not None else None
-    if cached_local is not None and len(cached_local) != len(images):
-        cached_local = None  # written for another image list
-    if cached is not None and cached_local is None:
-        cached_local = extract_local_features(pipeline, images, f"{label} keypoints")
-        if local_cache is not None:
-            local_cache.save(cached_local)
-    every_local: list[LocalFeatures] = []
+    cached_local = local_cache.load() if local_cache is not None else {}
+    missing = [p for p in images if p.resolve() in rows and p.resolve() not in cached_local]
+    if missing:  # vectors cached by an older run: extract only the keypoints
+        extracted = extract_local_features(pipeline, missing, f"{label} keypoints")
+        cached_local.update(zip((p.resolve() for p in missing), extracted, strict=True))
     stored_references: CalibrationInputs | None = None
     n_refs = len(dataset.references)
     local_vectors, global_vectors, keypoints, sizes, extraction_ms = [], [], [], [], []
@@ -313,7 +317,8 @@ def run_service_pass(
             from_cache.append(hit)
             if on_features is not None and not hit:
                 on_features(images[i], features)
-            every_local.append(_as_stored(features.local))
+            if not hit:
+                cached_local[images[i].resolve()] = _as_stored(features.local)
             if i == n_refs:
                 stored_references = _read_back(service)
             local_vectors.append(features.local_vector)
@@ -370,8 +375,8 @@ def run_service_pass(
             stage_ms=np.array(extraction_ms, np.float64),
         )
         (cached.merged(fresh) if cached is not None else fresh).save(path)
-        if local_cache is not None:
-            local_cache.save(every_local)
+    if local_cache is not None and (missing or not all_cached):
+        local_cache.save(cached_local)
     local_all, global_all = np.stack(local_vectors), np.stack(global_vectors)
     return PassResult(
         preset=pipeline.preset,

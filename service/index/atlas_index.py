@@ -102,6 +102,60 @@ class AtlasIndex:
         # While a rebuild runs: the adds and removals to replay on the new index.
         self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
         self._rebuilder: threading.Thread | None = None
+        # Every add and removal, numbered: caches of the held vectors follow them cheaply.
+        self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
+        self._journal_start = 0  # generation of the journal's first entry
+
+    JOURNAL_KEPT = 1024
+
+    @property
+    def generation(self) -> int:
+        """How many adds and removals this index object has seen."""
+        return self._journal_start + len(self._journal)
+
+    def changes_since(
+        self, generation: int
+    ) -> list[tuple[int, np.ndarray, np.ndarray | None]] | None:
+        """The adds (+1, ids, the vectors added) and removals (-1, ids, None) after
+        ``generation``, oldest first; None when the journal no longer reaches back that far."""
+        with self._lock:
+            if generation < self._journal_start or generation > self.generation:
+                return None
+            return list(self._journal[generation - self._journal_start :])
+
+    def _note(self, sign: int, ids: np.ndarray, vectors: np.ndarray | None = None) -> None:
+        self._journal.append((sign, ids.copy(), None if vectors is None else vectors.copy()))
+        if len(self._journal) > self.JOURNAL_KEPT:
+            drop = len(self._journal) - self.JOURNAL_KEPT // 2
+            self._journal = self._journal[drop:]
+            self._journal_start += drop
+
+    def vectors(self, ids: np.ndarray) -> np.ndarray:
+        """The stored vectors of held frame ``ids`` (decoded codes for the inverted file)."""
+        with self._lock:
+            return self._reconstruct(np.asarray(ids, dtype=np.int64))
+
+    def stored_like(self, ids: np.ndarray, added: np.ndarray) -> np.ndarray:
+        """What :meth:`vectors` returns for ``ids`` just added as ``added``, without the
+        inverted file's id map over every frame: each frame is found in the list its added
+        vector was assigned to."""
+        ids = np.asarray(ids, dtype=np.int64)
+        added = np.ascontiguousarray(added, dtype=np.float32)
+        with self._lock:
+            ivf = self._ivf()
+            if ivf is None:
+                return added.copy()  # the flat index keeps the vectors themselves
+            _, lists = ivf.quantizer.search(added, 1)
+            out = np.empty_like(added)
+            for row, (frame, list_no) in enumerate(zip(ids, lists[:, 0], strict=True)):
+                size = ivf.invlists.list_size(int(list_no))
+                held = faiss.rev_swig_ptr(ivf.invlists.get_ids(int(list_no)), size)
+                where = np.flatnonzero(held == frame)
+                if not len(where):  # not where expected (a rebuild moved it): the slow way
+                    out[row] = self._reconstruct(np.array([frame]))[0]
+                    continue
+                ivf.reconstruct_from_offset(int(list_no), int(where[0]), faiss.swig_ptr(out[row]))
+            return out
 
     @property
     def size(self) -> int:
@@ -155,6 +209,7 @@ class AtlasIndex:
             self._regrow(new_ids, vectors[new])
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
+            self._note(1, new_ids, vectors[new])
             return int(new.sum())
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
@@ -170,6 +225,7 @@ class AtlasIndex:
             removed = int(self._index.remove_ids(ids))
             for i in ids:
                 self._robot_of.pop(int(i), None)
+            self._note(-1, ids)
             if self._log is not None:
                 self._log.append(("remove", ids, None))
             elif self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:

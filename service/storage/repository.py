@@ -153,6 +153,29 @@ def frame_ids_and_robots(session: Session, *, atlas_id: int) -> dict[int, str]:
     return {int(i): robot for i, robot in rows}
 
 
+def frame_times(
+    session: Session, *, atlas_id: int, frame_ids: list[int] | None = None
+) -> list[tuple[int, str, float | None]]:
+    """``(id, robot, timestamp)`` of an atlas's frames (or of ``frame_ids``), in id order."""
+    query = select(Frame.id, Frame.robot_id, Frame.timestamp).where(Frame.atlas_id == atlas_id)
+    if frame_ids is not None:
+        query = query.where(Frame.id.in_(frame_ids))
+    return [(int(i), r, t) for i, r, t in session.execute(query.order_by(Frame.id))]
+
+
+def recent_robot_frames(
+    session: Session, *, atlas_id: int, robot_id: str, limit: int
+) -> list[tuple[int, float | None]]:
+    """``(id, timestamp)`` of a robot's last ``limit`` frames in arrival order, oldest first."""
+    rows = session.execute(
+        select(Frame.id, Frame.timestamp)
+        .where(Frame.atlas_id == atlas_id, Frame.robot_id == robot_id)
+        .order_by(Frame.id.desc())
+        .limit(limit)
+    )
+    return [(int(i), t) for i, t in rows][::-1]
+
+
 def frame_ids_of_submap(session: Session, *, submap_id: int) -> list[int]:
     return [int(i) for i in session.scalars(select(Frame.id).where(Frame.submap_id == submap_id))]
 

@@ -22,6 +22,7 @@ from service.api.forms import (
     QueryFilterForm,
     QueryIntrinsics,
     RobotId,
+    SequenceLength,
     SubmapName,
     Timestamp,
     frame_robot,
@@ -105,6 +106,7 @@ def query_features(
         float | None, Form(description="Capture time of the query frame, seconds.")
     ] = None,
     intrinsics: QueryIntrinsics = None,
+    sequence_length: SequenceLength = None,
 ) -> QueryOut:
     robot_id = acting_robot(caller, robot_id)
     query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
@@ -117,6 +119,8 @@ def query_features(
         k=k,
         query_filter=query_filter,
         intrinsics=intrinsics_from_form(intrinsics),
+        sequence_length=sequence_length,
+        timestamp=timestamp,
     )
     result.timings_ms = {
         "decode_features": round(decode_ms, 3),

@@ -16,6 +16,7 @@ from service.api.forms import (
     QueryFilterForm,
     QueryIntrinsics,
     RobotId,
+    SequenceLength,
     Timestamp,
     frame_robot,
     intrinsics_from_form,
@@ -59,6 +60,7 @@ def query(
         float | None, Form(description="Capture time of the query image, seconds.")
     ] = None,
     intrinsics: QueryIntrinsics = None,
+    sequence_length: SequenceLength = None,
 ) -> QueryOut:
     robot_id = acting_robot(caller, robot_id)
     query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
@@ -68,6 +70,7 @@ def query(
         k=k,
         query_filter=query_filter,
         intrinsics=intrinsics_from_form(intrinsics),
+        sequence_length=sequence_length,
     )
     record_if_inter_robot(
         service.sessions, robot_id=robot_id or None, result=result, source="query"
@@ -97,6 +100,7 @@ def observe(
     pose: PoseField = None,
     intrinsics: QueryIntrinsics = None,
     k: Annotated[int, Form(ge=1, description="How many candidates to return.")] = 5,
+    sequence_length: SequenceLength = None,
 ) -> ObserveOut:
     robot_id = frame_robot(caller, robot_id)
     query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
@@ -110,6 +114,7 @@ def observe(
         intrinsics=intrinsics_from_form(intrinsics),
         k=k,
         query_filter=query_filter,
+        sequence_length=sequence_length,
     )
     record_if_inter_robot(
         service.sessions,

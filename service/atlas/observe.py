@@ -1,0 +1,182 @@
+"""Observations (online SLAM): query with a robot's new keyframe, then insert it, in one call;
+from an image or from already extracted features (a replay, an on-board extractor)."""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+from service.atlas.filters import QueryFilter
+from service.atlas.ingest import FrameIngest, validate_frame_fields
+from service.atlas.results import QueryResult
+from service.atlas.sequences import RobotContext
+from service.errors import InvalidInput
+from service.ml.features import FrameFeatures
+from service.ml.geometry import Intrinsics, Pose
+from service.storage.models import Frame
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from service.storage.models import Atlas
+
+
+class Observations:
+    """The observe calls of :class:`~service.atlas.query.AtlasQueries` (which brings the
+    search, the checks and the ingest)."""
+
+    sessions: sessionmaker[Session]
+    ingest: FrameIngest
+
+    def check_k(self, k: int) -> None:
+        raise NotImplementedError
+
+    def robot_context(
+        self, query_filter: QueryFilter, timestamp: float | None, sequence_length: int | None
+    ) -> RobotContext | None:
+        raise NotImplementedError
+
+    def _check_targets(
+        self, session: Session, atlas_name: str, query_filter: QueryFilter, submap: str | None
+    ) -> Atlas:
+        raise NotImplementedError
+
+    def _search(
+        self,
+        atlas_name: str,
+        features: FrameFeatures,
+        k: int,
+        query_filter: QueryFilter,
+        intrinsics: Intrinsics | None,
+        robot: RobotContext | None = None,
+    ) -> QueryResult:
+        raise NotImplementedError
+
+    def observe(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        image_bytes: bytes,
+        query_filter: QueryFilter,
+        timestamp: float | None = None,
+        pose: Pose | None = None,
+        intrinsics: Intrinsics | None = None,
+        k: int = 5,
+        sequence_length: int | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """Online SLAM: query with a robot's new keyframe, then insert it, in one call.
+
+        Everything is validated before the CNNs run; the query happens before the insert, so
+        the new frame is never its own match; the insert is one transaction, so a failure
+        writes nothing.
+        """
+        total_start = time.perf_counter()
+        robot = self._check_observation(
+            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
+        )
+        features, decode_ms = self.ingest.extract(image_bytes)
+        result, frame = self._observe(
+            atlas_name,
+            submap_name,
+            robot_id,
+            features,
+            query_filter,
+            timestamp,
+            k,
+            robot,
+            pose,
+            intrinsics,
+        )
+        return with_extraction_timings(result, features, decode_ms, total_start), frame
+
+    def observe_features(
+        self,
+        *,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        query_filter: QueryFilter,
+        timestamp: float | None = None,
+        k: int = 5,
+        sequence_length: int | None = None,
+    ) -> tuple[QueryResult, Frame]:
+        """:meth:`observe` with already extracted features (a replay, an on-board extractor)."""
+        robot = self._check_observation(
+            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
+        )
+        return self._observe(
+            atlas_name,
+            submap_name,
+            robot_id,
+            features,
+            query_filter,
+            timestamp,
+            k,
+            robot,
+            None,
+            None,
+        )
+
+    def _check_observation(
+        self,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        timestamp: float | None,
+        k: int,
+        query_filter: QueryFilter,
+        sequence_length: int | None,
+    ) -> RobotContext:
+        """Everything an observation names, checked before any CNN runs."""
+        validate_frame_fields(robot_id, timestamp)
+        self.check_k(k)
+        if query_filter.robot_id != robot_id:
+            raise InvalidInput("an observation's filter must be for the observing robot")
+        robot = self.robot_context(query_filter, timestamp, sequence_length)
+        with self.sessions() as session:
+            self._check_targets(session, atlas_name, query_filter, submap_name)
+        assert robot is not None  # the filter names the observing robot
+        return robot
+
+    def _observe(
+        self,
+        atlas_name: str,
+        submap_name: str,
+        robot_id: str,
+        features: FrameFeatures,
+        query_filter: QueryFilter,
+        timestamp: float | None,
+        k: int,
+        robot: RobotContext,
+        pose: Pose | None,
+        intrinsics: Intrinsics | None,
+    ) -> tuple[QueryResult, Frame]:
+        """Query, then insert in one transaction: the frame never matches itself, and a
+        failure writes nothing."""
+        result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
+        frame = self.ingest.store(
+            atlas_name=atlas_name,
+            submap_name=submap_name,
+            robot_id=robot_id,
+            features=features,
+            timestamp=timestamp,
+            pose=pose,
+            intrinsics=intrinsics,
+        )
+        return result, frame
+
+
+def with_extraction_timings(
+    result: QueryResult, features: FrameFeatures, decode_ms: float, total_start: float
+) -> QueryResult:
+    result.timings_ms = {
+        "decode": round(decode_ms, 3),
+        **{name: round(ms, 3) for name, ms in features.timings_ms.items()},
+        **result.timings_ms,
+        "total": round((time.perf_counter() - total_start) * 1000.0, 3),
+    }
+    result.query_thumbnail = features.thumbnail
+    return result

@@ -1,0 +1,335 @@
+"""Online single-trajectory evaluation (the paper's setting: City Centre, New College): one
+robot's frames replayed in order; each frame asks about everything before it except its own
+recent frames, then joins the map.
+
+The application call is the service's own observe path
+(:func:`service.evaluation.online_service.service_observations`: search, sequence scoring from
+the database, insert); :func:`observe` keeps the same steps on an in-memory map (exact search,
+all frames' matches proposing candidates) for synthetic checks of the metrics. Features come
+from the evaluation's feature cache (the same files ``loopnet eval`` writes), so no CNN runs
+twice.
+
+Metrics: precision-recall of loop closures (a frame is a true positive when its answer is one of
+its ground-truth partners; recall divides by the frames that have a partner in the map), recall
+at 100% precision, with and without temporal consistency, and per-frame latency of the call.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.evaluation.datasets import Dataset, ReferenceFrame
+from service.evaluation.loop_ground_truth import Trajectory
+from service.evaluation.metrics import precision_recall, summary
+from service.evaluation.online_service import service_observations
+from service.evaluation.service_pass import CACHE_ARRAYS, CachedFeatures, cache_path, file_stamp
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.images import decode_image
+from service.ml.pipeline import FeaturePipeline, embed_vectors
+from service.ml.sequences import (
+    ConsistencySettings,
+    MapMoments,
+    SequenceSettings,
+    Trajectories,
+    consistent_scores,
+    match_sequence,
+)
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """Attributes:
+    length: sequence length L (1: single frame).
+    exclude_recent: the robot's own last N frames never answer (the service's default).
+    seeds: best single-frame matches kept per frame (candidates of the sequence step).
+    consistency: temporal consistency of the accepted loops.
+    """
+
+    length: int = 10
+    exclude_recent: int = 20
+    seeds: int = SequenceSettings().seeds
+    consistency: ConsistencySettings = field(default_factory=ConsistencySettings)
+
+
+@dataclass
+class OnlineMap:
+    """What the in-memory application holds: every frame's unit vector, the map's moments,
+    the trajectory order, and each frame's best matches so far (a cache: always recomputable
+    from the vectors)."""
+
+    vectors: np.ndarray
+    trajectories: Trajectories
+    settings: OnlineSettings
+    moments: MapMoments
+    in_map: int = 0
+    seeds: dict[int, tuple[np.ndarray, np.ndarray, int]] = field(default_factory=dict)
+
+    def admit(self, until: int) -> None:
+        """Frames ``in_map .. until-1`` join the map (they are no longer recent)."""
+        if until > self.in_map:
+            self.moments.add(self.vectors[self.in_map : until])
+            self.in_map = until
+
+    def best_matches(self, frame: int) -> np.ndarray:
+        """The frame's ``seeds`` best map frames over the current map, updated incrementally
+        (only frames that joined since the last call are compared)."""
+        indices, sims, seen = self.seeds.get(
+            frame, (np.zeros(0, np.int64), np.zeros(0, np.float32), 0)
+        )
+        if seen < self.in_map:
+            new = self.vectors[seen : self.in_map] @ self.vectors[frame]
+            indices = np.concatenate([indices, np.arange(seen, self.in_map)])
+            sims = np.concatenate([sims, new])
+            keep = np.argsort(-sims, kind="stable")[: self.settings.seeds]
+            indices, sims = indices[keep], sims[keep]
+            self.seeds[frame] = (indices, sims, self.in_map)
+        return indices
+
+
+@dataclass(frozen=True)
+class Observation:
+    reference: int  # best map frame, -1 when the map is empty
+    score: float  # sequence score (L > 1) or cosine similarity (L = 1)
+    length: int
+    ms: float
+
+
+def observe(state: OnlineMap, frame: int) -> Observation:
+    """One frame on the in-memory map: ask with the robot's recent sequence, then insert."""
+    start = time.perf_counter()
+    state.admit(max(frame - state.settings.exclude_recent, 0))
+    if state.in_map == 0:
+        return Observation(-1, -np.inf, 0, (time.perf_counter() - start) * 1000.0)
+    window = state.trajectories.recent(frame, state.settings.length)
+    seeds = [state.best_matches(int(j)) for j in window]
+    if state.settings.length == 1:
+        best = int(seeds[-1][0])
+        score = float(state.vectors[best] @ state.vectors[frame])
+        return Observation(best, score, 1, (time.perf_counter() - start) * 1000.0)
+    in_map = state.in_map
+    matches = match_sequence(
+        state.vectors[window],
+        seeds,
+        state.vectors.__getitem__,
+        state.trajectories,
+        state.moments,
+        SequenceSettings(length=state.settings.length, seeds=state.settings.seeds),
+        eligible=lambda frames: frames < in_map,
+        top=1,
+    )
+    ms = (time.perf_counter() - start) * 1000.0
+    if not matches:
+        return Observation(-1, -np.inf, 0, ms)
+    return Observation(matches[0].reference, matches[0].score, matches[0].length, ms)
+
+
+def trajectory_vectors(
+    trajectory: Trajectory, pipeline: FeaturePipeline, cache_dir: Path | None
+) -> CachedFeatures:
+    """Every frame's stored vectors, from the evaluation's feature cache when it holds them
+    (a two-traversal trajectory reuses the file ``loopnet eval`` wrote for that dataset)."""
+    as_dataset = Dataset(
+        name=trajectory.name.removesuffix("-single-trajectory"),
+        layout="trajectory",
+        root=trajectory.images[0].parent,
+        references=[ReferenceFrame(p, str(i), i) for i, p in enumerate(trajectory.images)],
+        queries=[],
+        ground_truth=trajectory.ground_truth,
+    )
+    path = cache_path(cache_dir, as_dataset, pipeline) if cache_dir else None
+    cached = CachedFeatures.load(path) if path is not None else None
+    if cached is not None:
+        rows = cached.rows()
+        order = [rows.get(image.resolve()) for image in trajectory.images]
+        if all(row is not None for row in order):
+            take = np.array(order, np.int64)
+            return CachedFeatures(**{name: getattr(cached, name)[take] for name in CACHE_ARRAYS})
+    local, global_, keypoints, sizes, stages = [], [], [], [], []
+    for image in tqdm(trajectory.images, desc=f"features: {trajectory.name}", unit="img"):
+        start = time.perf_counter()
+        rgb = decode_image(image.read_bytes())
+        decode_ms = (time.perf_counter() - start) * 1000.0
+        features = pipeline.extract(rgb)
+        local.append(features.local_vector)
+        global_.append(features.global_vector)
+        keypoints.append(features.local.count)
+        sizes.append(features.image_size)
+        stages.append(
+            [
+                decode_ms,
+                features.timings_ms["local_features"],
+                features.timings_ms["global_features"],
+            ]
+        )
+    fresh = CachedFeatures(
+        paths=np.array([str(p.resolve()) for p in trajectory.images]),
+        stamps=np.array([file_stamp(p) for p in trajectory.images], np.int64),
+        local=np.stack(local),
+        global_=np.stack(global_),
+        keypoints=np.array(keypoints, np.int64),
+        image_size=np.array(sizes, np.int64),
+        stage_ms=np.array(stages, np.float64),
+    )
+    if path is not None:
+        (cached.merged(fresh) if cached is not None else fresh).save(path)
+    return fresh
+
+
+def replay(
+    trajectory: Trajectory,
+    vectors: np.ndarray,
+    settings: OnlineSettings,
+    observations: list[Observation] | None = None,
+) -> dict[str, Any]:
+    """Metrics of the answers to the replayed trajectory: ``observations`` (the service's),
+    or :func:`observe` on the in-memory map when None."""
+    trajectories = Trajectories.single(len(vectors), trajectory.starts)
+    if observations is None:
+        state = OnlineMap(vectors, trajectories, settings, MapMoments(vectors.shape[1]))
+        observations = [observe(state, t) for t in range(len(vectors))]
+    references = np.array([o.reference for o in observations], np.int64)
+    scores = np.array([o.score for o in observations], np.float64)
+    correct = np.array(
+        [o.reference in loops for o, loops in zip(observations, trajectory.loops, strict=True)]
+    )
+    answerable = sum(
+        1
+        for t, loops in enumerate(trajectory.loops)
+        if any(j < t - settings.exclude_recent for j in loops)
+    )
+    rows: dict[str, Any] = {}
+    consistency = settings.consistency
+    for required in sorted({1, consistency.required}):
+        accept_at = consistent_scores(
+            references,
+            scores,
+            trajectories,
+            ConsistencySettings(required=required, max_step=consistency.max_step),
+            trajectory.starts,
+        )
+        decided = np.isfinite(accept_at)  # the others are never accepted as loops
+        curve = precision_recall(accept_at[decided], correct[decided], answerable)
+        rows[f"k={required}"] = {
+            "consistency_required": required,
+            "auc_pr": curve.auc,
+            "recall_at_100_precision": curve.recall_at_full_precision,
+            "threshold_at_100_precision": curve.threshold_at_full_precision,
+            "best_match_right": float(correct.sum() / max(answerable, 1)),
+        }
+    return {
+        "frames": len(vectors),
+        "answerable": answerable,
+        "settings": asdict(settings),
+        "decisions": rows,
+        "latency_ms": summary([o.ms for o in observations]),
+        "mean_length_used": float(np.mean([o.length for o in observations])),
+        "latency_note": "the observe call only (search + sequence scoring); CNNs not included",
+    }
+
+
+def unit_embeddings(features: CachedFeatures, alpha: float) -> np.ndarray:
+    heads = LoopNetHeads(
+        HeadsConfig(
+            local_dim=features.local.shape[1], global_dim=features.global_.shape[1], alpha=alpha
+        )
+    ).eval()
+    return embed_vectors(heads, features.local, features.global_)
+
+
+def write_report(report: dict[str, Any], output: Path) -> None:
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "online.json").write_text(json.dumps(report, indent=2, default=str))
+    lines = [
+        f"# Online single-trajectory replay: {report['trajectory']}",
+        "",
+        f"Command: `{report['command']}`",
+        "",
+        f"- Ground truth: {report['ground_truth']}",
+        f"- Features: {report['features']}",
+        "",
+        "| method | L | consistency k | best match right | AUC-PR | R@100%P | latency median ms | p95 ms |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in report["rows"]:
+        for decision in row["decisions"].values():
+            lines.append(
+                f"| {row['method']} | {row['settings']['length']} | "
+                f"{decision['consistency_required']} | {decision['best_match_right']:.3f} | "
+                f"{decision['auc_pr']:.3f} | {decision['recall_at_100_precision']:.3f} | "
+                f"{row['latency_ms']['median']:.2f} | {row['latency_ms']['p95']:.2f} |"
+            )
+    (output / "online.md").write_text("\n".join(lines) + "\n")
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """One replay run: the trajectory, the features and the settings swept.
+
+    Attributes:
+        methods: (name, extractor, alpha) of each descriptor replayed.
+        lengths: sequence lengths L (1 = single frame).
+    """
+
+    trajectory: Trajectory
+    output: Path
+    methods: tuple[tuple[str, str, float], ...]
+    lengths: tuple[int, ...]
+    preset: str = "default"
+    long_side: int | None = None
+    cache_dir: Path | None = None
+    exclude_recent: int = 20
+    consistency: int = 3
+    command: str = ""
+
+
+def run_online(config: OnlineConfig) -> dict[str, Any]:
+    """Replay the trajectory once per method and L; write online.json and online.md."""
+    from service.ml.presets import resolve_preset
+
+    rows = []
+    features_text = []
+    for name, extractor, alpha in config.methods:
+        preset = resolve_preset(config.preset, extractor=extractor, long_side=config.long_side)
+        pipeline = FeaturePipeline(preset)
+        features = trajectory_vectors(config.trajectory, pipeline, config.cache_dir)
+        vectors = unit_embeddings(features, alpha)
+        features_text.append(
+            f"{name}: {extractor} at long side {preset.local.long_side} + "
+            f"{preset.backbone.name}, untrained heads at alpha {alpha:g}"
+        )
+        for length in config.lengths:
+            settings = OnlineSettings(
+                length=length,
+                exclude_recent=config.exclude_recent,
+                consistency=ConsistencySettings(required=config.consistency),
+            )
+            answers = service_observations(
+                config.trajectory,
+                features,
+                pipeline,
+                alpha=alpha,
+                length=length,
+                exclude_recent=config.exclude_recent,
+                consistency=config.consistency,
+            )
+            observations = [Observation(*answer) for answer in answers]
+            rows.append(
+                {"method": name, **replay(config.trajectory, vectors, settings, observations)}
+            )
+    report = {
+        "command": config.command,
+        "trajectory": config.trajectory.name,
+        "ground_truth": config.trajectory.ground_truth,
+        "features": "; ".join(features_text),
+        "adapter": "AtlasService.observe_features (the service's observe path, SQLite)",
+        "rows": rows,
+    }
+    write_report(report, config.output)
+    return report

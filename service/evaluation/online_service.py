@@ -1,0 +1,104 @@
+"""The online replay's application call: one robot's frames through the service's own observe
+path (:meth:`AtlasService.observe_features`: search, sequence scoring from the database, then
+the insert), on a temporary SQLite atlas, from the evaluation's cached features.
+
+Frames keep their order as timestamps one second apart; where the trajectory starts a new run
+(a second traversal) the clock jumps well past the service's sequence gap, so the service cuts
+the sequence there as the trajectory does.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from service.config import Settings
+from service.evaluation.loop_ground_truth import Trajectory
+from service.evaluation.service_pass import CachedFeatures
+from service.ml.pipeline import FeaturePipeline
+
+ATLAS, SUBMAP, ROBOT = "online", "route", "robot"
+RUN_GAP_SECONDS = 10_000.0  # between two runs of the trajectory: always a new sequence
+
+
+def frame_times(trajectory: Trajectory, count: int) -> np.ndarray:
+    """One second per frame, and a long pause before each new run."""
+    runs = np.cumsum(np.asarray(trajectory.starts, dtype=bool)[:count])
+    return np.arange(count, dtype=np.float64) + RUN_GAP_SECONDS * runs
+
+
+def service_observations(
+    trajectory: Trajectory,
+    features: CachedFeatures,
+    pipeline: FeaturePipeline,
+    *,
+    alpha: float,
+    length: int,
+    exclude_recent: int,
+    consistency: int,
+) -> list[tuple[int, float, int, float]]:
+    """``(reference, score, length, ms)`` for every frame in order: the reference is the frame
+    index the service answered (-1: none), the score the sequence score (L > 1) or the cosine."""
+    from service.runtime import Runtime
+
+    # the atlas's untrained heads fuse at the method's alpha (a copy: the CNNs are shared)
+    pipeline = copy.copy(pipeline)
+    pipeline.preset = replace(pipeline.preset, alpha=alpha)
+    count = len(features.local)
+    times = frame_times(trajectory, count)
+    with tempfile.TemporaryDirectory(prefix="loopnet-online-") as data_dir:
+        settings = Settings(
+            data_dir=Path(data_dir),
+            verify_top=0,
+            exclude_recent_frames=exclude_recent,
+            exclude_recent_seconds=0.0,
+            consistency_frames=consistency,
+        )
+        runtime = Runtime(settings, pipeline)
+        runtime.start(background=False)
+        try:
+            service = runtime.service
+            service.create_atlas(ATLAS, description=f"online replay of {trajectory.name}")
+            service.create_submap(ATLAS, SUBMAP)
+            dim = pipeline.local.descriptor_dim
+            index_of: dict[int, int] = {}
+            answers = []
+            for t in tqdm(range(count), desc=f"observe: {trajectory.name}", unit="frame"):
+                frame_features, _ = features.frame(t, dim)
+                timestamp = float(times[t])
+                start = time.perf_counter()
+                result, frame = service.observe_features(
+                    atlas_name=ATLAS,
+                    submap_name=SUBMAP,
+                    robot_id=ROBOT,
+                    features=frame_features,
+                    timestamp=timestamp,
+                    k=1,
+                    query_filter=service.query_filter(
+                        robot_id=ROBOT,
+                        timestamp=timestamp,
+                        exclude_recent_frames=exclude_recent,
+                        exclude_recent_seconds=0.0,
+                    ),
+                    sequence_length=length if length > 1 else 0,
+                )
+                ms = (time.perf_counter() - start) * 1000.0
+                index_of[frame.id] = t
+                if result.sequence is not None:
+                    answer = result.sequence
+                    answers.append((index_of[answer.frame_id], answer.score, answer.length, ms))
+                elif result.match is not None:
+                    answers.append(
+                        (index_of[result.match.frame_id], result.match.similarity, 1, ms)
+                    )
+                else:
+                    answers.append((-1, -np.inf, 0, ms))
+        finally:
+            runtime.stop()
+    return answers

@@ -1,0 +1,204 @@
+"""Sequence scoring and temporal consistency through the real app (SQLite, HTTP), with
+synthetic precomputed features whose similarities are known by construction.
+
+The map robot drives places 0..39 once (one frame a second). Every place has its own global
+vector (orthogonal); all frames share one local descriptor, so only the global part tells
+places apart. An ambiguous query frame at place p is ``0.9 g[p] + g[d]`` with a decoy d that
+changes from frame to frame: each frame alone matches its decoy best, only the sequence
+(which accumulates along the map's trajectory) finds p.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.features_payload import encode_features
+from service.ml.features import FrameFeatures, LocalFeatures
+from tests.conftest import make_settings, wait_ready
+
+PLACES = 40
+DECOYS = [3, 11, 37, 7, 15, 33, 1, 9, 17, 35]  # never two consecutive places, never near 20-31
+LOCAL_DIM, GLOBAL_DIM = 128, 1280  # the default preset's DISK + MobileNetV2
+
+
+def place_vectors() -> np.ndarray:
+    basis, _ = np.linalg.qr(np.random.default_rng(7).standard_normal((GLOBAL_DIM, PLACES + 8)))
+    return basis.T.astype(np.float32)  # orthonormal rows
+
+
+G = place_vectors()
+
+
+def features(global_vector: np.ndarray) -> FrameFeatures:
+    n = 16
+    descriptors = np.zeros((n, LOCAL_DIM), np.float32)
+    descriptors[:, 0] = 1.0
+    keypoints = np.stack([np.arange(n) * 10.0 + 5.0, np.full(n, 20.0)], axis=1).astype(np.float32)
+    local = LocalFeatures(keypoints, descriptors, np.ones(n, np.float32))
+    g = (global_vector / np.linalg.norm(global_vector)).astype(np.float32)
+    return FrameFeatures(local, descriptors[0].copy(), g, (640, 480))
+
+
+def ambiguous(place: int, decoy: int) -> FrameFeatures:
+    return features(0.9 * G[place] + G[decoy])
+
+
+@pytest.fixture
+def data_dir(tmp_path: Path) -> Path:
+    return tmp_path / "data"
+
+
+def make_client(data_dir: Path, pipeline, **overrides: object) -> TestClient:  # type: ignore[no-untyped-def]
+    from service.api.app import create_app
+
+    settings = make_settings(data_dir, verify_top=0, **overrides)
+    return TestClient(create_app(settings, pipeline=pipeline))
+
+
+@pytest.fixture(params=[1, 0], ids=["newest-seeds", "all-seeds"])
+def app(data_dir: Path, pipeline, request) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
+    """The atlas, served with candidates from the newest frame's matches or every frame's."""
+    with make_client(data_dir, pipeline, sequence_seed_frames=request.param) as client:
+        wait_ready(client)
+        assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        client.map_ids = [  # type: ignore[attr-defined]
+            insert(client, pipeline, features(G[place]), "mapper", float(place))
+            for place in range(PLACES)
+        ]
+        yield client
+
+
+def insert(client: TestClient, pipeline, frame: FrameFeatures, robot: str, t: float) -> int:  # type: ignore[no-untyped-def]
+    payload = encode_features(frame, pipeline.signature)
+    response = client.post(
+        "/v1/atlases/campus/frames:features",
+        data={"submap": "s0", "robot_id": robot, "timestamp": str(t)},
+        files={"features": ("f.npz", payload)},
+    )
+    assert response.status_code == 201, response.text
+    return int(response.json()["frame_id"])
+
+
+def query(client: TestClient, pipeline, frame: FrameFeatures, **fields: str) -> dict:  # type: ignore[no-untyped-def,type-arg]
+    payload = encode_features(frame, pipeline.signature)
+    response = client.post(
+        "/v1/atlases/campus/query:features",
+        data=fields,
+        files={"features": ("f.npz", payload)},
+    )
+    assert response.status_code == 200, response.text
+    return response.json()  # type: ignore[no-any-return]
+
+
+def map_frame_ids(client: TestClient) -> list[int]:
+    return client.map_ids  # type: ignore[attr-defined,no-any-return]
+
+
+def drive(client: TestClient, pipeline, places: list[int], start: float = 100.0) -> None:  # type: ignore[no-untyped-def]
+    """The rover's earlier frames (stored, as observe stores them)."""
+    for i, place in enumerate(places):
+        insert(client, pipeline, ambiguous(place, DECOYS[i]), "rover", start + i)
+
+
+def test_single_frames_are_ambiguous_the_sequence_is_not(app: TestClient, pipeline) -> None:  # type: ignore[no-untyped-def]
+    ids = map_frame_ids(app)
+    places = [20, 21, 22, 23, 24]
+    drive(app, pipeline, places[:-1])
+    newest = ambiguous(places[-1], DECOYS[len(places) - 1])
+    answer = query(app, pipeline, newest, robot_id="rover", timestamp="104", sequence_length="5")
+    assert answer["match"]["frame_id"] == ids[DECOYS[4]]  # alone, the decoy wins
+    sequence = answer["sequence"]
+    assert sequence["frame_id"] == ids[24]
+    assert sequence["aligned"] == [ids[p] for p in places]
+    assert sequence["length"] == 5 and sequence["speed"] == 1.0
+    # off per request, and nothing about sequences without a robot
+    assert query(app, pipeline, newest, robot_id="rover", sequence_length="0")["sequence"] is None
+    anonymous = query(app, pipeline, newest)
+    assert anonymous["sequence"] is None and anonymous["status"] in {"loop", "new_place"}
+
+
+def test_a_faster_traversal_within_the_speed_range(app: TestClient, pipeline) -> None:  # type: ignore[no-untyped-def]
+    ids = map_frame_ids(app)
+    places = [25, 26, 28, 29, 30]  # 1.25 map frames per rover frame, aligned from the newest
+    drive(app, pipeline, places[:-1])
+    newest = ambiguous(places[-1], DECOYS[4])
+    answer = query(app, pipeline, newest, robot_id="rover", timestamp="104", sequence_length="5")
+    assert answer["sequence"]["frame_id"] == ids[30]
+    assert answer["sequence"]["speed"] == 1.25
+    assert answer["sequence"]["aligned"] == [ids[p] for p in places]
+
+
+def test_a_time_gap_starts_a_new_sequence(app: TestClient, pipeline) -> None:  # type: ignore[no-untyped-def]
+    ids = map_frame_ids(app)
+    drive(app, pipeline, [20, 21, 22, 23])
+    newest = ambiguous(24, DECOYS[4])
+    later = query(app, pipeline, newest, robot_id="rover", timestamp="200", sequence_length="5")
+    assert later["sequence"]["length"] == 1  # 96 s after the last frame: only this one
+    assert later["sequence"]["frame_id"] == ids[DECOYS[4]]
+    on_time = query(app, pipeline, newest, robot_id="rover", timestamp="104", sequence_length="5")
+    assert on_time["sequence"]["length"] == 5 and on_time["sequence"]["frame_id"] == ids[24]
+
+
+def test_consistency_candidate_then_loop_and_new_place(app: TestClient, pipeline) -> None:  # type: ignore[no-untyped-def]
+    ids = map_frame_ids(app)
+    statuses = []
+    for i, place in enumerate([10, 11, 12]):
+        answer = query(app, pipeline, features(G[place]), robot_id="rover", timestamp=str(100 + i))
+        assert answer["loop_closure"] and answer["match"]["frame_id"] == ids[place]
+        statuses.append((answer["status"], answer["consistent"], answer["new_place"]))
+        insert(app, pipeline, features(G[place]), "rover", 100 + i)
+    assert statuses == [("candidate", 1, False), ("candidate", 2, False), ("loop", 3, False)]
+    elsewhere = query(app, pipeline, features(G[PLACES + 3]), robot_id="rover", timestamp="103")
+    assert not elsewhere["loop_closure"]
+    assert (elsewhere["status"], elsewhere["new_place"]) == ("new_place", True)
+
+
+def test_two_replicas_answer_the_same_sequence_score(
+    app: TestClient, data_dir: Path, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    fields = {"robot_id": "rover", "timestamp": "104", "sequence_length": "5"}
+    query(app, pipeline, features(G[5]), **fields)  # this replica's map now grows frame by frame
+    drive(app, pipeline, [20, 21, 22, 23])
+    newest = ambiguous(24, DECOYS[4])
+    first = query(app, pipeline, newest, **fields)["sequence"]  # map grown frame by frame
+    with make_client(data_dir, pipeline) as other:  # a second process: map built from the rows
+        wait_ready(other)
+        second = query(other, pipeline, newest, **fields)["sequence"]
+    assert second == first
+
+
+def test_sequence_length_is_checked(app: TestClient, pipeline) -> None:  # type: ignore[no-untyped-def]
+    payload = encode_features(features(G[0]), pipeline.signature)
+    response = app.post(
+        "/v1/atlases/campus/query:features",
+        data={"robot_id": "rover", "sequence_length": "51"},
+        files={"features": ("f.npz", payload)},
+    )
+    assert response.status_code == 422
+
+
+def test_two_replicas_on_postgresql_answer_alike(
+    tmp_path: Path, postgres_url: str, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """The fleet setting: two API processes' apps on one PostgreSQL database, each with its
+    own data directory; one takes every write, both answer."""
+    fields = {"robot_id": "rover", "timestamp": "104", "sequence_length": "5"}
+    newest = ambiguous(24, DECOYS[4])
+    with make_client(tmp_path / "a", pipeline, database_url=postgres_url) as first:
+        wait_ready(first)
+        assert first.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert first.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        ids = [insert(first, pipeline, features(G[p]), "mapper", float(p)) for p in range(PLACES)]
+        query(first, pipeline, features(G[5]), **fields)  # its map grows frame by frame from here
+        drive(first, pipeline, [20, 21, 22, 23])
+        answer = query(first, pipeline, newest, **fields)["sequence"]
+        with make_client(tmp_path / "b", pipeline, database_url=postgres_url) as second:
+            wait_ready(second)
+            assert query(second, pipeline, newest, **fields)["sequence"] == answer
+    assert answer["frame_id"] == ids[24] and answer["length"] == 5

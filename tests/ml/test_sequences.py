@@ -1,0 +1,283 @@
+"""Sequence scoring, trajectory order and temporal consistency on synthetic trajectories whose
+answers are known by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.ml.sequences import (
+    ConsistencySettings,
+    Hypothesis,
+    MapMoments,
+    PlaceStatus,
+    SequenceSettings,
+    Trajectories,
+    consistent_scores,
+    decide,
+    match_sequence,
+    score_candidates,
+    sequence_starts,
+)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _aliased_route(rng: np.random.Generator, places: int, looks: int, dim: int = 32):
+    """A route of ``places`` frames that each look like one of only ``looks`` appearances:
+    every frame has many look-alikes, but a run of consecutive appearances is unique."""
+    appearance = _unit(rng.normal(size=(looks, dim)))
+    label = rng.integers(0, looks, size=places)
+    return appearance, label
+
+
+def _seeds(queries: np.ndarray, reference: np.ndarray, k: int) -> list[np.ndarray]:
+    return [np.argsort(-(reference @ q), kind="stable")[:k] for q in queries]
+
+
+def test_single_frames_are_ambiguous_and_the_sequence_is_not() -> None:
+    rng = np.random.default_rng(0)
+    appearance, label = _aliased_route(rng, places=300, looks=6)
+    reference = _unit(appearance[label] + 0.15 * rng.normal(size=(300, 32)))
+    query = _unit(appearance[label] + 0.15 * rng.normal(size=(300, 32)))
+    trajectories = Trajectories.single(300)
+    moments = MapMoments.of(reference)
+    settings = SequenceSettings(length=8, speeds=(1.0,), seeds=60)
+    single_right = sequence_right = 0
+    tested = range(20, 300, 7)
+    for t in tested:
+        single_right += int(abs(int(np.argmax(reference @ query[t])) - t) <= 0)
+        window = query[t - 7 : t + 1]
+        matches = match_sequence(
+            window,
+            _seeds(window, reference, 60),
+            lambda i: reference[i],
+            trajectories,
+            moments,
+            settings,
+        )
+        assert matches[0].length == 8
+        assert matches[0].aligned == tuple(
+            range(matches[0].reference - 7, matches[0].reference + 1)
+        )
+        sequence_right += int(matches[0].reference == t)
+    assert single_right / len(tested) < 0.4
+    assert sequence_right == len(tested)
+
+
+def test_a_speed_within_the_range_is_found() -> None:
+    rng = np.random.default_rng(1)
+    appearance, label = _aliased_route(rng, places=400, looks=5)
+    reference = _unit(appearance[label] + 0.1 * rng.normal(size=(400, 32)))
+    trajectories = Trajectories.single(400)
+    moments = MapMoments.of(reference)
+    for speed in (0.8, 1.25):
+        # the robot passes `speed` reference frames per query frame, ending at frame 120
+        places = 120 - np.rint(speed * np.arange(12)[::-1]).astype(int)
+        query = _unit(appearance[label[places]] + 0.1 * rng.normal(size=(12, 32)))
+        seeds = _seeds(query, reference, 80)
+        ranged = match_sequence(
+            query,
+            seeds,
+            lambda i: reference[i],
+            trajectories,
+            moments,
+            SequenceSettings(length=12, speeds=(0.8, 0.9, 1.0, 1.1, 1.25), seeds=80),
+        )
+        fixed = match_sequence(
+            query,
+            seeds,
+            lambda i: reference[i],
+            trajectories,
+            moments,
+            SequenceSettings(length=12, speeds=(1.0,), seeds=80),
+        )
+        assert ranged[0].reference == places[-1]
+        assert ranged[0].speed == speed
+        assert ranged[0].aligned == tuple(int(p) for p in places)
+        assert ranged[0].score > fixed[0].score
+
+
+def test_reverse_traversal_is_found_only_when_asked() -> None:
+    rng = np.random.default_rng(2)
+    appearance, label = _aliased_route(rng, places=200, looks=5)
+    reference = _unit(appearance[label] + 0.1 * rng.normal(size=(200, 32)))
+    places = np.arange(150, 140, -1)
+    query = _unit(appearance[label[places]] + 0.1 * rng.normal(size=(10, 32)))
+    trajectories, moments = Trajectories.single(200), MapMoments.of(reference)
+    seeds = _seeds(query, reference, 60)
+    both = SequenceSettings(length=10, speeds=(1.0,), reverse=True, seeds=60)
+    matches = match_sequence(query, seeds, lambda i: reference[i], trajectories, moments, both)
+    assert (matches[0].reference, matches[0].speed) == (141, -1.0)
+
+
+def test_map_moments_equal_the_full_similarity_rows() -> None:
+    rng = np.random.default_rng(3)
+    reference = _unit(rng.normal(size=(500, 16)))
+    query = _unit(rng.normal(size=(4, 16)))
+    moments = MapMoments(16, fold_every=8)
+    moments.add(reference[:450])  # folded at once
+    for vector in reference[450:]:  # one at a time: pending, folded every 8
+        moments.add(vector)
+    moments.add(reference[:3])
+    moments.remove(reference[:3])
+    full = query @ reference.T
+    for _ in range(2):
+        mean, std = moments.row_stats(query)
+        np.testing.assert_allclose(mean, full.mean(axis=1), atol=1e-6)
+        np.testing.assert_allclose(std, full.std(axis=1), atol=1e-6)
+        moments.add(reference[:5])
+        moments.remove(reference[:5])  # exact with frames still pending
+
+
+def test_a_time_gap_or_a_jump_back_starts_a_new_sequence() -> None:
+    starts = sequence_starts([0.0, 1.0, None, 2.0, 40.0, 41.0, 5.0, 6.0], max_gap_seconds=30)
+    assert starts.tolist() == [True, False, False, False, True, False, True, False]
+    # two robots interleaved, one with a gap; frames without timestamps keep arrival order
+    robots = ["a", "b", "a", "b", "a", "a", "b"]
+    times = [0.0, None, 1.0, None, 100.0, 101.0, None]
+    t = Trajectories.build(robots, times, max_gap_seconds=30)
+    assert t.recent(5, 10).tolist() == [4, 5]  # the gap cut robot a's sequence
+    assert t.recent(2, 10).tolist() == [0, 2]
+    assert t.recent(6, 10).tolist() == [1, 3, 6]
+    assert t.step(np.array([4]), np.array([-1])).tolist() == [-1]  # never walks across the cut
+    # timestamps reorder frames that arrived out of order
+    shuffled = Trajectories.build(["a"] * 3, [2.0, 1.0, 3.0])
+    assert shuffled.recent(2, 3).tolist() == [1, 0, 2]
+
+
+def test_sequence_scoring_resets_after_a_gap() -> None:
+    rng = np.random.default_rng(4)
+    appearance, label = _aliased_route(rng, places=200, looks=6)
+    reference = _unit(appearance[label] + 0.1 * rng.normal(size=(200, 32)))
+    # the map was driven in two sessions with a long pause after frame 99
+    times = [float(i) if i < 100 else 1000.0 + i for i in range(200)]
+    trajectories = Trajectories.build(["map"] * 200, times, max_gap_seconds=30)
+    moments = MapMoments.of(reference)
+    query = _unit(appearance[label[96:104]] + 0.1 * rng.normal(size=(8, 32)))
+    matches = match_sequence(
+        query,
+        _seeds(query, reference, 60),
+        lambda i: reference[i],
+        trajectories,
+        moments,
+        SequenceSettings(length=8, speeds=(1.0,), seeds=60),
+    )
+    best = next(m for m in matches if m.reference == 103)
+    assert best.length == 4  # frames 100..103 only: 96..99 lie in the other session
+    assert best.aligned == (-1, -1, -1, -1, 100, 101, 102, 103)
+
+
+def test_consistency_needs_k_agreeing_observations() -> None:
+    t = Trajectories.build(["a"] * 50 + ["b"] * 50)
+    settings = ConsistencySettings(required=3, max_step=2)
+    seen: list[Hypothesis | None] = []
+    statuses = []
+    for reference, passed in [
+        (10, True),
+        (11, True),
+        (12, True),
+        (13, True),
+        (40, True),
+        (41, True),
+        (42, False),
+        (60, True),
+        (None, False),
+    ]:
+        seen.append(None if reference is None else Hypothesis(reference, passed))
+        statuses.append(decide(seen, t, settings))
+    assert [d.status for d in statuses] == [
+        PlaceStatus.CANDIDATE,
+        PlaceStatus.CANDIDATE,
+        PlaceStatus.LOOP,
+        PlaceStatus.LOOP,
+        PlaceStatus.CANDIDATE,
+        PlaceStatus.CANDIDATE,
+        PlaceStatus.NEW_PLACE,
+        PlaceStatus.CANDIDATE,
+        PlaceStatus.NEW_PLACE,
+    ]
+    assert [d.consistent for d in statuses] == [1, 2, 3, 3, 1, 2, 0, 1, 0]
+    # frames 49 and 50 are neighbours by index but belong to two robots: no agreement
+    assert (
+        decide(
+            [Hypothesis(48, True), Hypothesis(49, True), Hypothesis(50, True)], t, settings
+        ).consistent
+        == 1
+    )
+
+
+def test_consistent_scores_give_decide_at_every_threshold() -> None:
+    rng = np.random.default_rng(5)
+    t = Trajectories.single(100)
+    references = np.array([10, 11, 13, 14, 70, 71, 72, 72, -1, 30, 31, 32])
+    scores = rng.uniform(0, 1, size=len(references))
+    settings = ConsistencySettings(required=3, max_step=2)
+    accept_at = consistent_scores(references, scores, t, settings)
+    for threshold in np.r_[scores, 0.0, 1.0]:
+        history = [
+            None if r < 0 else Hypothesis(int(r), bool(s >= threshold))
+            for r, s in zip(references, scores, strict=True)
+        ]
+        for i in range(len(history)):
+            loop = decide(history[: i + 1], t, settings).status is PlaceStatus.LOOP
+            assert loop == bool(accept_at[i] >= threshold)
+
+
+def test_settings_reject_nonsense() -> None:
+    with pytest.raises(ValueError):
+        SequenceSettings(length=0)
+    with pytest.raises(ValueError):
+        SequenceSettings(speeds=(0.0,))
+    with pytest.raises(ValueError):
+        ConsistencySettings(required=0)
+
+
+def test_local_contrast_standardises_against_the_aligned_frames_neighbours() -> None:
+    rng = np.random.default_rng(6)
+    reference = _unit(rng.normal(size=(60, 8)))
+    query = _unit(reference[20:25] + 0.1 * rng.normal(size=(5, 8)))
+    settings = SequenceSettings(length=5, speeds=(1.0,), contrast_window=4)
+    trajectories = Trajectories.single(60)
+    [match] = score_candidates(
+        query,
+        np.array([24]),
+        lambda i: reference[i],
+        trajectories,
+        MapMoments.of(reference).row_stats(query),
+        settings,
+    )
+    expected = 0.0
+    for row, frame in enumerate(range(20, 25)):
+        window = query[row] @ reference[frame - 2 : frame + 3].T
+        expected += (query[row] @ reference[frame] - window.mean()) / window.std()
+    assert match.score == pytest.approx(expected / np.sqrt(5), rel=1e-5)
+    assert match.aligned == (20, 21, 22, 23, 24)
+
+
+def test_a_restarted_replica_rebuilt_from_stored_rows_answers_the_same() -> None:
+    """One process grew its state frame by frame; another rebuilt it from the stored rows
+    (vectors, robots, timestamps) at once: the same sequence answer, to rounding."""
+    rng = np.random.default_rng(7)
+    appearance, label = _aliased_route(rng, places=240, looks=6)
+    reference = _unit(appearance[label] + 0.1 * rng.normal(size=(240, 32)))
+    robots = ["a" if i % 3 else "b" for i in range(240)]
+    times = [float(i) for i in range(240)]
+    grown = MapMoments(32, fold_every=16)
+    for vector in reference:
+        grown.add(vector)
+    rebuilt = MapMoments.of(reference)
+    order_a = Trajectories.build(robots, times, max_gap_seconds=30)
+    order_b = Trajectories.build(robots, times, max_gap_seconds=30)
+    query = _unit(reference[order_a.recent(200, 6)] + 0.05 * rng.normal(size=(6, 32)))
+    seeds = _seeds(query, reference, 50)
+    settings = SequenceSettings(length=6)
+    first = match_sequence(query, seeds, lambda i: reference[i], order_a, grown, settings)
+    second = match_sequence(query, seeds, lambda i: reference[i], order_b, rebuilt, settings)
+    assert [(m.reference, m.aligned, m.speed) for m in first] == [
+        (m.reference, m.aligned, m.speed) for m in second
+    ]
+    np.testing.assert_allclose([m.score for m in first], [m.score for m in second], rtol=1e-9)
+    assert first[0].reference == 200

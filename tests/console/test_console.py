@@ -149,6 +149,7 @@ def test_admin_creates_an_atlas_and_sees_each_robots_trajectory(console: Console
     row = page.wait_for_selector(f"[data-testid=atlas-row-{ATLAS}]")
     text = row.text_content() or ""
     assert "10" in text and "husky-1, husky-2" in text and "v1" in text
+    assert "uncalibrated" in text  # 10 frames: below the first calibration milestone
     shoot(page, "atlases")
 
     row.click()

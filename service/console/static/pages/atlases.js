@@ -1,4 +1,5 @@
-// Atlases: frames, submaps, robots, active model version, last activity; admins create them.
+// Atlases: frames, submaps, robots, active model version, calibration, last activity; admins
+// create them.
 import { get, post } from "../api.js";
 import { errorBox, fmt, h, table } from "../ui.js";
 
@@ -18,10 +19,20 @@ export default async function render(container, { caller }) {
     ["Robots", (a) => a.robots.map((r) => r.robot_id).join(", ") || "–"],
     ["Model", (a) => h("span", {}, `v${a.active_model_version} `,
       h("span", { class: `badge ${a.classifier_trained ? "ok" : ""}` }, a.classifier_trained ? "trained" : "untrained"))],
+    ["Calibration", (a) => calibration(a.calibration)],
     ["Last activity", (a) => fmt.time(a.last || a.created_at)],
     ["Description", (a) => a.description],
   ], rows, (a) => { location.hash = `#/atlas/${encodeURIComponent(a.name)}`; })
     : h("p", { class: "muted" }, "No atlases yet."));
+}
+
+// "calibrated (v2, 200 frames)" or "uncalibrated": the summary's calibration state
+function calibration(state) {
+  if (!state || state.state !== "calibrated") {
+    return h("span", { class: "badge", "data-testid": "calibration" }, "uncalibrated");
+  }
+  return h("span", { class: "badge ok", "data-testid": "calibration" },
+    `calibrated (v${state.version}, ${state.frames_at_fit} frames)`);
 }
 
 function createForm() {

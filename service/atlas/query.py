@@ -7,7 +7,6 @@ filter, searches and reads the candidates and their stored keypoints for verific
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, replace
 
@@ -38,6 +37,7 @@ from service.errors import InvalidInput
 from service.metrics import observe_stages
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics
+from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import PlaceStatus
 from service.ml.verification import Verification, View, decide, rerank
 from service.storage import repository as repo
@@ -299,11 +299,3 @@ class AtlasQueries(Observations):
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
         return Found(candidates, frames, names, stored, evidence)
-
-
-def loop_score_threshold(score_min: float, frames: int) -> float:
-    """The score the best of ``frames`` candidates must reach so that a query with no true
-    revisit passes with probability ``10**-score_min`` at most: each impostor pair passes score
-    ``s`` with probability ``10**-s`` (the calibration's meaning), the best of ``frames`` about
-    ``frames`` times as often. One setting then means the same on small and large atlases."""
-    return round(score_min + math.log10(max(frames, 1)), 4)

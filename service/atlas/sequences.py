@@ -26,6 +26,7 @@ from service.atlas.sequence_map import SequenceMap, SequenceMaps
 from service.atlas.state import LoadedAtlas
 from service.config import Settings
 from service.index import Hit
+from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import (
     ConsistencySettings,
     Hypothesis,
@@ -221,7 +222,7 @@ class SequenceScorer:
         selection: Selection,
     ) -> list[Hypothesis | None]:
         """The robot's previous ``required - 1`` observations as DBoW2 sees them: each one's
-        best single-frame match, passed when over the loop-closure threshold."""
+        best single-frame match, passed by the query's own rule (unverified)."""
         required = self.consistency.required
         recent: list[Hypothesis | None] = []
         for position in previous[max(len(previous) - (required - 1), 0) :] if required > 1 else []:
@@ -231,13 +232,24 @@ class SequenceScorer:
                 include=selection.include,
                 exclude=selection.exclude,
             )
-            recent.append(self._hypothesis(view, found[0] if found else None))
+            recent.append(self._hypothesis(state, view, found[0] if found else None))
         return recent
 
-    def _hypothesis(self, view: SequenceMap, hit: Hit | None) -> Hypothesis | None:
+    def _hypothesis(
+        self, state: LoadedAtlas, view: SequenceMap, hit: Hit | None
+    ) -> Hypothesis | None:
         if hit is None:
             return None
         at = view.position.get(hit.frame_id, -1)
         if at < 0:
             return None
-        return Hypothesis(at, hit.similarity >= self.settings.loop_closure_threshold)
+        return Hypothesis(at, self._passes(state, hit.similarity))
+
+    def _passes(self, state: LoadedAtlas, similarity: float) -> bool:
+        """The query's own rule without verification: the calibrated score against its bar
+        on a calibrated version, else the cosine against the loop-closure threshold."""
+        scores = state.model.score(np.array([similarity], np.float64))
+        if scores is None:
+            return similarity >= self.settings.loop_closure_threshold
+        bar = loop_score_threshold(self.settings.loop_score_min, state.index.size)
+        return float(scores[0]) >= bar

@@ -16,6 +16,7 @@ sampled impostor stay finite and ordered.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -174,3 +175,11 @@ def impostor_model_of(
         ]
     )
     return ImpostorModel.fit(cosines)
+
+
+def loop_score_threshold(score_min: float, frames: int) -> float:
+    """The score the best of ``frames`` candidates must reach so that a query with no true
+    revisit passes with probability ``10**-score_min`` at most: each impostor pair passes score
+    ``s`` with probability ``10**-s`` (the calibration's meaning), the best of ``frames`` about
+    ``frames`` times as often. One setting then means the same on small and large atlases."""
+    return round(score_min + math.log10(max(frames, 1)), 4)

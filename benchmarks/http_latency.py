@@ -35,6 +35,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from service.atlas.ingest import FrameFields
 from service.features_payload import encode_features
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline
@@ -178,12 +179,12 @@ def bench_in_process(preset: str, threads: int, images: list[Path]) -> float:
             service.create_submap("bench", "s")
             data = [p.read_bytes() for p in images]
             service.ingest_frame(
-                atlas_name="bench", submap_name="s", robot_id="r", image_bytes=data[0]
+                atlas_name="bench", fields=FrameFields("s", "r"), image_bytes=data[0]
             )  # warm-up
             start = time.perf_counter()
             for image in data:
                 service.ingest_frame(
-                    atlas_name="bench", submap_name="s", robot_id="r", image_bytes=image
+                    atlas_name="bench", fields=FrameFields("s", "r"), image_bytes=image
                 )
             return len(data) / (time.perf_counter() - start)
         finally:

@@ -27,6 +27,7 @@ from sqlalchemy.engine import make_url
 
 from service.atlas.catalog import AtlasService
 from service.atlas.change_feed import ChangeFollower
+from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.pipeline import FeaturePipeline
@@ -97,8 +98,7 @@ def main() -> None:
                 time.sleep(random.uniform(0, interval))
                 frame = writer.ingest_features(
                     atlas_name="bench",
-                    submap_name="s",
-                    robot_id="r",
+                    fields=FrameFields("s", "r"),
                     features=synthetic_features(dims.local_dim, dims.global_dim),
                 )
                 start = time.perf_counter()
@@ -116,8 +116,7 @@ def main() -> None:
         for _ in range(args.burst):
             writer.ingest_features(
                 atlas_name="bench",
-                submap_name="s",
-                robot_id="r",
+                fields=FrameFields("s", "r"),
                 features=synthetic_features(dims.local_dim, dims.global_dim, keypoints=64),
             )
         follower = ChangeFollower(sessions, reader.follow, interval=1.0, retention_seconds=3600)

@@ -18,6 +18,7 @@ import json
 import tempfile
 from pathlib import Path
 
+from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import load_dataset
 from service.jobs.retraining import JobRunner
@@ -54,8 +55,7 @@ def main() -> None:
         for i, reference in enumerate(dataset.references):
             frame = service.ingest_frame(
                 atlas_name="atlas",
-                submap_name="map",
-                robot_id="map",
+                fields=FrameFields("map", "map"),
                 image_bytes=reference.path.read_bytes(),
             )
             reference_of[frame.id] = i

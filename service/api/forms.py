@@ -12,6 +12,7 @@ from service.api.auth import acting_robot
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
 from service.atlas.filters import QueryFilter, make_filter
+from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.errors import InvalidInput
 from service.fleet.keys import Principal
@@ -40,6 +41,24 @@ def frame_robot(caller: Principal, robot_id: str | None) -> str:
     if not robot:
         raise InvalidInput("robot_id is required (only a robot key may leave it out)")
     return robot
+
+
+def frame_fields(
+    caller: Principal,
+    submap: str,
+    robot_id: str | None,
+    timestamp: float | None,
+    pose: str | None,
+    intrinsics: str | None,
+) -> FrameFields:
+    """A frame upload's form fields as the one value ingest and observe take."""
+    return FrameFields(
+        submap,
+        frame_robot(caller, robot_id),
+        timestamp=timestamp,
+        pose=pose_from_form(pose),
+        intrinsics=intrinsics_from_form(intrinsics),
+    )
 
 
 def pose_from_form(raw: str | None) -> Pose | None:

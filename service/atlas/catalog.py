@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.atlas import change_feed, reads
 from service.atlas import model_versions as models_store
 from service.atlas.filters import QueryFilter, make_filter
-from service.atlas.ingest import FrameIngest
+from service.atlas.ingest import FrameFields, FrameIngest
 from service.atlas.names import validate_name
 from service.atlas.query import AtlasQueries
 from service.atlas.reads import unavailable_atlases
@@ -25,7 +25,7 @@ from service.atlas.verify import CandidateVerification, verification_config
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
 from service.ml.features import FrameFeatures
-from service.ml.geometry import Intrinsics, Pose
+from service.ml.geometry import Intrinsics
 from service.ml.pipeline import FeaturePipeline
 from service.storage import repository as repo
 from service.storage.db import transaction
@@ -186,12 +186,8 @@ class AtlasService:
         self,
         *,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
+        fields: FrameFields,
         image_bytes: bytes,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
         k: int = 5,
         query_filter: QueryFilter | None = None,
         sequence_length: int | None = None,
@@ -199,13 +195,9 @@ class AtlasService:
         """:meth:`AtlasQueries.observe` with the observing robot's default filter."""
         return self.queries.observe(
             atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
+            fields=fields,
             image_bytes=image_bytes,
-            query_filter=query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp),
-            timestamp=timestamp,
-            pose=pose,
-            intrinsics=intrinsics,
+            query_filter=query_filter or self._robot_filter(fields),
             k=k,
             sequence_length=sequence_length,
         )
@@ -214,10 +206,8 @@ class AtlasService:
         self,
         *,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
+        fields: FrameFields,
         features: FrameFeatures,
-        timestamp: float | None = None,
         k: int = 5,
         query_filter: QueryFilter | None = None,
         sequence_length: int | None = None,
@@ -225,14 +215,15 @@ class AtlasService:
         """:meth:`AtlasQueries.observe_features` with the observing robot's default filter."""
         return self.queries.observe_features(
             atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
+            fields=fields,
             features=features,
-            query_filter=query_filter or self.query_filter(robot_id=robot_id, timestamp=timestamp),
-            timestamp=timestamp,
+            query_filter=query_filter or self._robot_filter(fields),
             k=k,
             sequence_length=sequence_length,
         )
+
+    def _robot_filter(self, fields: FrameFields) -> QueryFilter:
+        return self.query_filter(robot_id=fields.robot_id, timestamp=fields.timestamp)
 
 
 __all__ = ["AtlasService", "LoadedAtlas"]

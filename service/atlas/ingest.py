@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -34,10 +35,22 @@ from service.storage.models import Atlas, Frame
 log = logging.getLogger(__name__)
 
 
-def validate_frame_fields(robot_id: str, timestamp: float | None) -> None:
-    validate_name("robot", robot_id)
-    if timestamp is not None and not np.isfinite(timestamp):
-        raise InvalidInput("timestamp must be a finite number of seconds")
+@dataclass(frozen=True)
+class FrameFields:
+    """What a robot says of a frame it sends: the submap it joins, who took it, when, from
+    where and with which camera. One value for ingest and observe alike."""
+
+    submap_name: str
+    robot_id: str
+    timestamp: float | None = None
+    pose: Pose | None = None
+    intrinsics: Intrinsics | None = None
+
+    def validate(self) -> None:
+        """The robot's name and a finite timestamp (the submap is checked against the atlas)."""
+        validate_name("robot", self.robot_id)
+        if self.timestamp is not None and not np.isfinite(self.timestamp):
+            raise InvalidInput("timestamp must be a finite number of seconds")
 
 
 class FrameIngest:
@@ -83,81 +96,37 @@ class FrameIngest:
         observe_stages({"decode": decode_ms, **features.timings_ms})
         return features, decode_ms
 
-    def ingest_frame(
-        self,
-        *,
-        atlas_name: str,
-        submap_name: str,
-        robot_id: str,
-        image_bytes: bytes,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
-    ) -> Frame:
+    def ingest_frame(self, *, atlas_name: str, fields: FrameFields, image_bytes: bytes) -> Frame:
         """Store a frame, its features and its embedding; nothing is written if any step fails."""
-        validate_frame_fields(robot_id, timestamp)
+        fields.validate()
         with self.sessions() as session:
             atlas = self.checked_atlas(session, atlas_name)
-            repo.get_submap(session, atlas=atlas, name=submap_name)
+            repo.get_submap(session, atlas=atlas, name=fields.submap_name)
         features, _ = self.extract(image_bytes)
-        return self.store(
-            atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
-            features=features,
-            timestamp=timestamp,
-            pose=pose,
-            intrinsics=intrinsics,
-        )
+        return self.store(atlas_name=atlas_name, fields=fields, features=features)
 
     def ingest_features(
-        self,
-        *,
-        atlas_name: str,
-        submap_name: str,
-        robot_id: str,
-        features: FrameFeatures,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
+        self, *, atlas_name: str, fields: FrameFields, features: FrameFeatures
     ) -> Frame:
         """Store a frame whose features are already extracted (validated here)."""
-        validate_frame_fields(robot_id, timestamp)
-        return self.store(
-            atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
-            features=features,
-            timestamp=timestamp,
-            pose=pose,
-            intrinsics=intrinsics,
-        )
+        fields.validate()
+        return self.store(atlas_name=atlas_name, fields=fields, features=features)
 
-    def store(
-        self,
-        *,
-        atlas_name: str,
-        submap_name: str,
-        robot_id: str,
-        features: FrameFeatures,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
-    ) -> Frame:
+    def store(self, *, atlas_name: str, fields: FrameFields, features: FrameFeatures) -> Frame:
         """Commit a validated frame's rows in one transaction; the embedding is then computed
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version."""
         with transaction(self.sessions) as session:
             atlas = self.checked_atlas(session, atlas_name)
-            submap = repo.get_submap(session, atlas=atlas, name=submap_name)
+            submap = repo.get_submap(session, atlas=atlas, name=fields.submap_name)
             frame = repo.add_frame(
                 session,
                 atlas=atlas,
                 submap=submap,
-                robot_id=robot_id,
-                timestamp=timestamp,
-                pose=pose,
-                intrinsics=intrinsics,
+                robot_id=fields.robot_id,
+                timestamp=fields.timestamp,
+                pose=fields.pose,
+                intrinsics=fields.intrinsics,
                 features=features,
             )
             revision = change_feed.record(
@@ -171,7 +140,7 @@ class FrameIngest:
             state = self.states.loaded(frame.atlas_id)
             if state.revision < revision:  # else the change feed has handled it already
                 embedding = state.model.embed(features)
-                state.index.add(np.array([frame.id]), embedding[None], [robot_id])
+                state.index.add(np.array([frame.id]), embedding[None], [fields.robot_id])
                 state.dirty = True
         return frame
 

@@ -7,12 +7,12 @@ import time
 from typing import TYPE_CHECKING
 
 from service.atlas.filters import QueryFilter
-from service.atlas.ingest import FrameIngest, validate_frame_fields
+from service.atlas.ingest import FrameFields, FrameIngest
 from service.atlas.results import QueryResult
 from service.atlas.sequences import RobotContext
 from service.errors import InvalidInput
 from service.ml.features import FrameFeatures
-from service.ml.geometry import Intrinsics, Pose
+from service.ml.geometry import Intrinsics
 from service.storage.models import Frame
 
 if TYPE_CHECKING:
@@ -56,13 +56,9 @@ class Observations:
         self,
         *,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
+        fields: FrameFields,
         image_bytes: bytes,
         query_filter: QueryFilter,
-        timestamp: float | None = None,
-        pose: Pose | None = None,
-        intrinsics: Intrinsics | None = None,
         k: int = 5,
         sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
@@ -73,99 +69,57 @@ class Observations:
         writes nothing.
         """
         total_start = time.perf_counter()
-        robot = self._check_observation(
-            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
-        )
+        robot = self._check_observation(atlas_name, fields, k, query_filter, sequence_length)
         features, decode_ms = self.ingest.extract(image_bytes)
-        result, frame = self._observe(
-            atlas_name,
-            submap_name,
-            robot_id,
-            features,
-            query_filter,
-            timestamp,
-            k,
-            robot,
-            pose,
-            intrinsics,
-        )
+        result, frame = self._observe(atlas_name, fields, features, query_filter, k, robot)
         return with_extraction_timings(result, features, decode_ms, total_start), frame
 
     def observe_features(
         self,
         *,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
+        fields: FrameFields,
         features: FrameFeatures,
         query_filter: QueryFilter,
-        timestamp: float | None = None,
         k: int = 5,
         sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
         """:meth:`observe` with already extracted features (a replay, an on-board extractor)."""
-        robot = self._check_observation(
-            atlas_name, submap_name, robot_id, timestamp, k, query_filter, sequence_length
-        )
-        return self._observe(
-            atlas_name,
-            submap_name,
-            robot_id,
-            features,
-            query_filter,
-            timestamp,
-            k,
-            robot,
-            None,
-            None,
-        )
+        robot = self._check_observation(atlas_name, fields, k, query_filter, sequence_length)
+        return self._observe(atlas_name, fields, features, query_filter, k, robot)
 
     def _check_observation(
         self,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
-        timestamp: float | None,
+        fields: FrameFields,
         k: int,
         query_filter: QueryFilter,
         sequence_length: int | None,
     ) -> RobotContext:
         """Everything an observation names, checked before any CNN runs."""
-        validate_frame_fields(robot_id, timestamp)
+        fields.validate()
         self.check_k(k)
-        if query_filter.robot_id != robot_id:
+        if query_filter.robot_id != fields.robot_id:
             raise InvalidInput("an observation's filter must be for the observing robot")
-        robot = self.robot_context(query_filter, timestamp, sequence_length)
+        robot = self.robot_context(query_filter, fields.timestamp, sequence_length)
         with self.sessions() as session:
-            self._check_targets(session, atlas_name, query_filter, submap_name)
+            self._check_targets(session, atlas_name, query_filter, fields.submap_name)
         assert robot is not None  # the filter names the observing robot
         return robot
 
     def _observe(
         self,
         atlas_name: str,
-        submap_name: str,
-        robot_id: str,
+        fields: FrameFields,
         features: FrameFeatures,
         query_filter: QueryFilter,
-        timestamp: float | None,
         k: int,
         robot: RobotContext,
-        pose: Pose | None,
-        intrinsics: Intrinsics | None,
     ) -> tuple[QueryResult, Frame]:
         """Query, then insert in one transaction: the frame never matches itself, and a
         failure writes nothing."""
-        result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
-        frame = self.ingest.store(
-            atlas_name=atlas_name,
-            submap_name=submap_name,
-            robot_id=robot_id,
-            features=features,
-            timestamp=timestamp,
-            pose=pose,
-            intrinsics=intrinsics,
-        )
+        result = self._search(atlas_name, features, k, query_filter, fields.intrinsics, robot)
+        frame = self.ingest.store(atlas_name=atlas_name, fields=fields, features=features)
         return result, frame
 
 

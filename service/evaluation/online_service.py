@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.service_pass import CachedFeatures
@@ -75,10 +76,8 @@ def service_observations(
                 start = time.perf_counter()
                 result, frame = service.observe_features(
                     atlas_name=ATLAS,
-                    submap_name=SUBMAP,
-                    robot_id=ROBOT,
+                    fields=FrameFields(SUBMAP, ROBOT, timestamp=timestamp),
                     features=frame_features,
-                    timestamp=timestamp,
                     k=1,
                     query_filter=service.query_filter(
                         robot_id=ROBOT,

@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.atlas.catalog import AtlasService
+from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
@@ -337,8 +338,7 @@ def run_service_pass(
                 start = time.perf_counter()
                 frame = service.ingest_features(
                     atlas_name=ATLAS,
-                    submap_name=submap_name(submap_of[i]),
-                    robot_id=ROBOT,
+                    fields=FrameFields(submap_name(submap_of[i]), ROBOT),
                     features=features,
                 )
                 stage_ms["ingest"].append((time.perf_counter() - start) * 1000.0)

@@ -35,6 +35,7 @@ from schemathesis import GenerationMode
 from schemathesis.python.asgi import shutdown_lifespans
 from sqlalchemy import func, select
 
+from service.atlas.ingest import FrameFields
 from service.features_payload import encode_features
 from service.ml.images import decode_image
 from service.storage.models import Atlas, Frame, FrameFeatureRow, Job, ModelVersion, Submap
@@ -105,7 +106,7 @@ def api_schema(fuzzed_app: Any) -> Any:
     service.create_submap(ATLAS, SUBMAP)
     for _ in range(2):
         service.ingest_frame(
-            atlas_name=ATLAS, submap_name=SUBMAP, robot_id=ROBOT, image_bytes=seed_image()
+            atlas_name=ATLAS, fields=FrameFields(SUBMAP, ROBOT), image_bytes=seed_image()
         )
     return schema
 

@@ -25,9 +25,8 @@ from service.api.forms import (
     SequenceLength,
     SubmapName,
     Timestamp,
-    frame_robot,
+    frame_fields,
     intrinsics_from_form,
-    pose_from_form,
 )
 from service.api.routes.frames import get_frame
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
@@ -78,12 +77,8 @@ def add_frame_features(
 ) -> FrameOut:
     frame = service.ingest_features(
         atlas_name=atlas,
-        submap_name=submap,
-        robot_id=frame_robot(access, robot_id),
+        fields=frame_fields(access, submap, robot_id, timestamp, pose, intrinsics),
         features=read_features(service, atlas, features),
-        timestamp=timestamp,
-        pose=pose_from_form(pose),
-        intrinsics=intrinsics_from_form(intrinsics),
     )
     return get_frame(atlas, frame.id, service, access)
 

@@ -14,9 +14,7 @@ from service.api.forms import (
     PoseField,
     SubmapName,
     Timestamp,
-    frame_robot,
-    intrinsics_from_form,
-    pose_from_form,
+    frame_fields,
 )
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import read_image_upload
@@ -51,12 +49,8 @@ def add_frame(
 ) -> FrameOut:
     frame = service.ingest_frame(
         atlas_name=atlas,
-        submap_name=submap,
-        robot_id=frame_robot(caller, robot_id),
+        fields=frame_fields(caller, submap, robot_id, timestamp, pose, intrinsics),
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
-        timestamp=timestamp,
-        pose=pose_from_form(pose),
-        intrinsics=intrinsics_from_form(intrinsics),
     )
     return frame_out(reads.frame_record(service.sessions, atlas, frame.id))
 

@@ -18,9 +18,9 @@ from service.api.forms import (
     RobotId,
     SequenceLength,
     Timestamp,
+    frame_fields,
     frame_robot,
     intrinsics_from_form,
-    pose_from_form,
 )
 from service.api.schemas import ErrorOut, ObserveOut, QueryOut
 from service.api.uploads import read_image_upload
@@ -106,12 +106,8 @@ def observe(
     query_filter = filters.build(service.settings, robot_id=robot_id, timestamp=timestamp)
     result, frame = service.observe(
         atlas_name=atlas,
-        submap_name=submap,
-        robot_id=robot_id,
+        fields=frame_fields(caller, submap, robot_id, timestamp, pose, intrinsics),
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
-        timestamp=timestamp,
-        pose=pose_from_form(pose),
-        intrinsics=intrinsics_from_form(intrinsics),
         k=k,
         query_filter=query_filter,
         sequence_length=sequence_length,

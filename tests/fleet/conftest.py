@@ -46,6 +46,7 @@ def exported(
                 params={"shots": 2, "epochs": 20, "embed_dim": 32},
             ).id
         JobRunner(settings, service.sessions).run(job_id)
+        service.catch_up()  # the new version arrives through the change feed, as in a replica
         result = service.query(
             atlas_name="campus", image_bytes=gardens_point_day_night(3, "ref"), k=1
         )

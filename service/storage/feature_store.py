@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import Row, select
 from sqlalchemy.orm import Session
 
 from service.ml.calibration import CalibrationInputs
@@ -67,6 +68,26 @@ class StoredVectors:
         return len(self.ids)
 
 
+def _stored_rows(
+    session: Session,
+    atlas_id: int,
+    columns: tuple[Any, ...],
+    frame_ids: Sequence[int] | None,
+    batch: int,
+) -> Iterator[Sequence[Row[Any]]]:
+    """Batches of (frame id, submap id, robot id, *columns) of an atlas's stored frames in
+    frame id order, streamed from the database."""
+    query = (
+        select(Frame.id, Frame.submap_id, Frame.robot_id, *columns)
+        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
+        .where(Frame.atlas_id == atlas_id)
+        .order_by(Frame.id)
+    )
+    if frame_ids is not None:
+        query = query.where(Frame.id.in_(list(frame_ids)))
+    yield from session.execute(query.execution_options(yield_per=batch)).partitions(batch)
+
+
 def iter_stored_vectors(
     session: Session, atlas_id: int, *, frame_ids: Sequence[int] | None = None, batch: int = 4096
 ) -> Iterator[StoredVectors]:
@@ -74,24 +95,13 @@ def iter_stored_vectors(
 
     Only the two small vectors are read, never the keypoint blobs.
     """
-    query = (
-        select(
-            Frame.id,
-            Frame.submap_id,
-            Frame.robot_id,
-            FrameFeatureRow.local_vector,
-            FrameFeatureRow.global_vector,
-            FrameFeatureRow.descriptor_dim,
-            FrameFeatureRow.global_dim,
-        )
-        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
-        .where(Frame.atlas_id == atlas_id)
-        .order_by(Frame.id)
+    columns = (
+        FrameFeatureRow.local_vector,
+        FrameFeatureRow.global_vector,
+        FrameFeatureRow.descriptor_dim,
+        FrameFeatureRow.global_dim,
     )
-    if frame_ids is not None:
-        query = query.where(Frame.id.in_(list(frame_ids)))
-    result = session.execute(query.execution_options(yield_per=batch))
-    for rows in result.partitions(batch):
+    for rows in _stored_rows(session, atlas_id, columns, frame_ids, batch):
         ids = np.array([r.id for r in rows], np.int64)
         submaps = np.array([r.submap_id for r in rows], np.int64)
         robots = [r.robot_id for r in rows]
@@ -156,24 +166,13 @@ def iter_stored_descriptors(
     session: Session, atlas_id: int, *, frame_ids: Sequence[int] | None = None, batch: int = 256
 ) -> Iterator[StoredDescriptors]:
     """Batches of stored descriptors in frame id order (small batches: the blobs are large)."""
-    query = (
-        select(
-            Frame.id,
-            Frame.submap_id,
-            Frame.robot_id,
-            FrameFeatureRow.descriptors,
-            FrameFeatureRow.descriptor_dim,
-            FrameFeatureRow.scores,
-            FrameFeatureRow.global_vector,
-        )
-        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
-        .where(Frame.atlas_id == atlas_id)
-        .order_by(Frame.id)
+    columns = (
+        FrameFeatureRow.descriptors,
+        FrameFeatureRow.descriptor_dim,
+        FrameFeatureRow.scores,
+        FrameFeatureRow.global_vector,
     )
-    if frame_ids is not None:
-        query = query.where(Frame.id.in_(list(frame_ids)))
-    result = session.execute(query.execution_options(yield_per=batch))
-    for rows in result.partitions(batch):
+    for rows in _stored_rows(session, atlas_id, columns, frame_ids, batch):
         yield StoredDescriptors(
             ids=np.array([r.id for r in rows], np.int64),
             descriptors=[

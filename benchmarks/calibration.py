@@ -25,6 +25,7 @@ from typing import overload
 import numpy as np
 
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
+from service.ml.presets import PRESETS
 
 
 class SyntheticDescriptors(Sequence[np.ndarray]):
@@ -64,8 +65,15 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=10_000)
     parser.add_argument("--keypoints", type=int, default=1024, help="per frame (default preset)")
     parser.add_argument("--dim", type=int, default=128, help="descriptor size (DISK 128)")
-    parser.add_argument("--global-dim", type=int, default=1280, help="MobileNetV2 channels")
-    parser.add_argument("--words", type=int, default=CalibrationConfig().words)
+    parser.add_argument(
+        "--global-dim",
+        type=int,
+        default=PRESETS["default"].signature.dims[1],
+        help="R's length (default preset: MobileNetV2 GeM + layout)",
+    )
+    parser.add_argument(
+        "--words", type=int, default=None, help="VLAD words (default: 16384 / --dim)"
+    )
     parser.add_argument("--json", help="also write the figures to this file")
     args = parser.parse_args()
 
@@ -96,7 +104,7 @@ def main() -> None:
         "keypoints_per_frame": args.keypoints,
         "descriptor_dim": args.dim,
         "global_dim": args.global_dim,
-        "words": args.words,
+        "words": config.words_for(args.dim),
         "fused_dim": int(embedded.shape[1]),
         "fit_wall_s": round(fit_wall, 2),
         "fit_cpu_s": round(fit_cpu, 2),
@@ -112,7 +120,7 @@ def main() -> None:
     }
     print(
         f"calibration of {args.frames} frames ({args.keypoints} x {args.dim}-d descriptors, "
-        f"{args.global_dim}-d global, {args.words} words): fit {fit_wall:.1f} s wall / "
+        f"{args.global_dim}-d global, {config.words_for(args.dim)} words): fit {fit_wall:.1f} s wall / "
         f"{fit_cpu:.1f} s CPU {figures['fit_stages_s']}; re-embed {embed_wall:.1f} s wall / "
         f"{embed_cpu:.1f} s CPU ({figures['reembed_ms_per_frame']} ms a frame); "
         f"fused dim {embedded.shape[1]}"

@@ -44,11 +44,11 @@ class Settings(BaseSettings):
         5, ge=0, le=100, description="Best retrieval candidates verified per query; 0: none."
     )
     loop_score_min: float = Field(
-        3.0,
+        2.0,
         ge=0.0,
         description="On calibrated model versions: -log10 of the chance that a query with no "
         "true revisit finds a match this good among the atlas's frames (a match is a loop from "
-        "score >= this + log10(frames)).",
+        "score >= this + log10(frames), and only once verification agrees).",
     )
     calibration_milestones: str = Field(
         "100,1000,10000,100000",

@@ -46,7 +46,7 @@ def calibration_config(params: dict[str, Any]) -> CalibrationConfig:
     config = CalibrationConfig(**{k: v for k, v in params.items() if k in known})
     if config.aggregator not in AGGREGATORS:
         raise ValueError(f"aggregator must be one of {sorted(AGGREGATORS)}")
-    if not 2 <= config.words <= 1024:
+    if config.words is not None and not 2 <= config.words <= 1024:
         raise ValueError(f"words must lie in [2, 1024], got {config.words}")
     return config
 

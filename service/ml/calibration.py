@@ -8,7 +8,16 @@ turns a cosine into a score with a fixed meaning (:mod:`service.ml.impostors`).
 Fusion keeps the paper's form, ``F = alpha * D_w + (1 - alpha) * R_w`` with the two whitened
 branches side by side, then L2-normalised: exactly what untrained :class:`LoopNetHeads` compute
 on the branch vectors (see :meth:`Calibration.heads_config`), so retrained heads start from
-the calibrated branches. Everything is computed from stored features (descriptors, scores,
+the calibrated branches.
+
+*On the same footing.* Two unit branches of different sizes do not spread their cosines alike
+(a whitened 512-d VLAD's impostor cosines spread about 0.6x as wide as a 256-d R's), so a raw
+``alpha`` would weigh the wider branch more than it says. The fit measures each branch's
+impostor spread and fuses at the weight (:attr:`Calibration.fusion_alpha`) that gives each
+branch's *standardised* cosine the share ``alpha^2 : (1 - alpha)^2``: ``alpha`` keeps the
+paper's meaning whatever the branch sizes. The default is 0.5 (no branch preferred): chosen
+over the paper's 0.7 and 0.6 on the first half of each development set's queries
+(benchmarks/RESULTS.md, "Choosing the calibration"). Everything is computed from stored features (descriptors, scores,
 backbone vectors): re-embedding an atlas never runs a CNN.
 """
 
@@ -27,10 +36,11 @@ from service.ml.aggregation import l2_normalize
 from service.ml.aggregators import Aggregator, aggregator_from_state, fit_aggregator
 from service.ml.features import LocalFeatures
 from service.ml.heads import HeadsConfig
-from service.ml.impostors import ImpostorModel, impostor_pairs
+from service.ml.impostors import MIN_PAIRS, ImpostorModel, impostor_pairs, sequence_positions
 from service.ml.whitening import Whitening, WhiteningConfig
 
 FORMAT_VERSION = 1
+VLAD_SIZE = 16_384  # values of a raw VLAD vector (words x descriptor dim) when words is None
 
 
 @dataclass(frozen=True)
@@ -39,7 +49,8 @@ class CalibrationConfig:
 
     Attributes:
         aggregator: ``vlad`` or ``mean`` (see :mod:`service.ml.aggregators`).
-        words: VLAD vocabulary size.
+        words: VLAD vocabulary size; None: ``VLAD_SIZE // descriptor dim`` (DISK 128 words,
+            XFeat 256), so every extractor's VLAD has the same length.
         local, global_: each branch's reduction and whitening.
         alpha: the fusion weight of the local branch.
         descriptor_sample: descriptors the vocabulary is learned on, at most.
@@ -51,9 +62,9 @@ class CalibrationConfig:
     """
 
     aggregator: str = "vlad"
-    words: int = 64
-    local: WhiteningConfig = field(default_factory=WhiteningConfig)
-    global_: WhiteningConfig = field(default_factory=WhiteningConfig)
+    words: int | None = None
+    local: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
+    global_: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
     alpha: float = 0.5
     descriptor_sample: int = 100_000
     fit_frames: int = 20_000
@@ -64,6 +75,12 @@ class CalibrationConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must lie in [0, 1], got {self.alpha}")
+        if self.words is not None and self.words < 1:
+            raise ValueError(f"words must be at least 1, got {self.words}")
+
+    def words_for(self, descriptor_dim: int) -> int:
+        """The vocabulary size for descriptors of ``descriptor_dim`` values."""
+        return self.words if self.words is not None else max(8, VLAD_SIZE // descriptor_dim)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -137,23 +154,31 @@ class Calibration:
         local_whitening: Whitening,
         global_whitening: Whitening,
         impostors: ImpostorModel | None,
+        spread: tuple[float, float] | None = None,
     ) -> None:
         self.config = config
         self.aggregator = aggregator
         self.local_whitening = local_whitening
         self.global_whitening = global_whitening
         self.impostors = impostors
+        self.spread = spread
 
     @property
     def alpha(self) -> float:
+        """The branches' weight as the paper means it (on standardised cosines)."""
         return self.config.alpha
+
+    @property
+    def fusion_alpha(self) -> float:
+        """The weight the fused vector is built with (see the module doc)."""
+        return standardised_alpha(self.config.alpha, self.spread)
 
     def heads_config(self) -> HeadsConfig:
         """Heads over the calibrated branches; untrained, they compute :meth:`fuse`."""
         return HeadsConfig(
             local_dim=self.local_whitening.dim,
             global_dim=self.global_whitening.dim,
-            alpha=self.alpha,
+            alpha=self.fusion_alpha,
         )
 
     @property
@@ -192,8 +217,9 @@ class Calibration:
     def fuse(
         self, local_branch: np.ndarray, global_branch: np.ndarray, alpha: float | None = None
     ) -> np.ndarray:
-        """``[alpha * D_w, (1 - alpha) * R_w]``, L2-normalised (alpha: the calibration's)."""
-        a = self.alpha if alpha is None else alpha
+        """``[a * D_w, (1 - a) * R_w]``, L2-normalised, ``a`` the fusion weight of ``alpha``
+        (default: the calibration's) on these branches' spreads."""
+        a = self.fusion_alpha if alpha is None else standardised_alpha(alpha, self.spread)
         return l2_normalize(np.hstack([a * local_branch, (1.0 - a) * global_branch]))
 
     def embed_many(
@@ -230,6 +256,7 @@ class Calibration:
                         "config": self.config.to_dict(),
                         "aggregator": self.aggregator.name,
                         "impostors": self.impostors is not None,
+                        "spread": list(self.spread) if self.spread is not None else None,
                     }
                 )
             )
@@ -269,6 +296,7 @@ class Calibration:
                 Whitening.from_state(part("local")),
                 Whitening.from_state(part("global")),
                 ImpostorModel.from_state(part("impostors")) if meta["impostors"] else None,
+                _spread_of(meta.get("spread")),
             )
 
     # ----- fitting ------------------------------------------------------------------------
@@ -282,11 +310,12 @@ class Calibration:
         rng = np.random.default_rng(config.seed)
         start = time.perf_counter()
         sample = descriptor_sample(inputs.descriptors, config.descriptor_sample, rng)
-        if config.aggregator == "vlad" and len(sample) < config.words:
+        words = config.words_for(sample.shape[1])
+        if config.aggregator == "vlad" and len(sample) < words:
             raise ValueError(
-                f"the atlas holds {len(sample)} descriptors, too few for {config.words} words"
+                f"the atlas holds {len(sample)} descriptors, too few for {words} words"
             )
-        aggregator = fit_aggregator(config.aggregator, sample, words=config.words, seed=config.seed)
+        aggregator = fit_aggregator(config.aggregator, sample, words=words, seed=config.seed)
         timings["vocabulary"] = time.perf_counter() - start
 
         start = time.perf_counter()
@@ -299,7 +328,7 @@ class Calibration:
         timings["aggregate"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        has_local = local_raw.any(1)  # frames without keypoints aggregate to zero
+        has_local = np.asarray(local_raw.any(1), bool)  # frames without keypoints: zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
         calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
         timings["whitening"] = time.perf_counter() - start
@@ -312,15 +341,16 @@ class Calibration:
 
         # Impostor cosines between frames the whitening has not seen and frames it has, as a
         # query meets stored frames: in-sample pairs look more orthogonal than any query would.
+        # Frames are held out in whole stretches of their robot's sequence, so that no place of
+        # a held-out frame was seen either (a query of a new place, which the score is about).
         start = time.perf_counter()
-        held = np.zeros(len(inputs), bool)
-        held[fit_rows[: max(1, int(round(config.impostor_holdout * len(fit_rows))))]] = True
+        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
         probe = _fit_branches(
             config, aggregator, local_raw, inputs.global_vectors, fit_rows[~held[fit_rows]]
         )
         probe_local = probe.local_whitening.transform(local_raw)
         probe_local[~has_local] = 0.0
-        fused = probe.fuse(probe_local, probe.global_whitening.transform(inputs.global_vectors))
+        branches = (probe_local, probe.global_whitening.transform(inputs.global_vectors))
         first, second = impostor_pairs(
             inputs.robots,
             np.asarray(inputs.order),
@@ -328,13 +358,19 @@ class Calibration:
             seed=config.seed,
             first_from=held,
         )
-        cosines = np.concatenate(
-            [
-                np.einsum("ij,ij->i", fused[first[i : i + 16_384]], fused[second[i : i + 16_384]])
-                for i in range(0, len(first), 16_384)
-            ]
-        )
-        calibration.impostors = ImpostorModel.fit(cosines)
+        if len(first) < MIN_PAIRS:  # a tiny atlas: in-sample pairs of the fitted branches
+            branches = (local_branch, global_branch)
+            first, second = impostor_pairs(
+                inputs.robots,
+                np.asarray(inputs.order),
+                pairs=config.impostor_pairs,
+                seed=config.seed,
+            )
+        local_cos, global_cos = (_pair_cosines(b, first, second) for b in branches)
+        both_local = has_local[first] & has_local[second]
+        calibration.spread = (_spread(local_cos[both_local]), _spread(global_cos))
+        weights = _cosine_weights(calibration.fusion_alpha)
+        calibration.impostors = ImpostorModel.fit(weights[0] * local_cos + weights[1] * global_cos)
         timings["impostors"] = time.perf_counter() - start
         return FittedCalibration(calibration, local_branch, global_branch, timings)
 
@@ -346,7 +382,63 @@ class Calibration:
             self.local_whitening,
             self.global_whitening,
             None,
+            self.spread,
         )
+
+
+def standardised_alpha(alpha: float, spread: tuple[float, float] | None) -> float:
+    """The weight ``a`` of ``[a D, (1 - a) R]`` under which each branch's cosine divided by its
+    impostor spread gets the share ``alpha^2 : (1 - alpha)^2`` (``alpha`` itself without spreads,
+    or at 0 and 1)."""
+    if spread is None or alpha in (0.0, 1.0):
+        return alpha
+    local, global_ = spread
+    ratio = alpha / (1.0 - alpha) * float(np.sqrt(global_ / local))
+    return ratio / (1.0 + ratio)
+
+
+def _cosine_weights(a: float) -> tuple[float, float]:
+    """Each branch's share of the fused cosine that ``[a D, (1 - a) R]`` gives (unit branches)."""
+    total = a * a + (1.0 - a) ** 2
+    return a * a / total, (1.0 - a) ** 2 / total
+
+
+def _pair_cosines(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    step = 16_384
+    return np.concatenate(
+        [
+            np.einsum("ij,ij->i", vectors[first[i : i + step]], vectors[second[i : i + step]])
+            for i in range(0, len(first), step)
+        ]
+    )
+
+
+def _spread(cosines: np.ndarray) -> float:
+    """Standard deviation of impostor cosines (floored: a constant branch must not divide by 0)."""
+    return max(float(np.std(cosines)) if len(cosines) else 0.0, 1e-4)
+
+
+def _spread_of(value: object) -> tuple[float, float] | None:
+    """The spreads as saved (None in calibrations saved before they were measured)."""
+    if value is None:
+        return None
+    if not (isinstance(value, list) and len(value) == 2):
+        raise ValueError(f"bad branch spreads {value!r}")
+    local, global_ = (float(v) for v in value)
+    if not (local > 0.0 and global_ > 0.0):
+        raise ValueError(f"bad branch spreads {value!r}")
+    return local, global_
+
+
+def held_out_stretches(robots: Sequence[str], order: np.ndarray, share: float) -> np.ndarray:
+    """A mask of about ``share`` of the frames, in stretches as long as the impostor gap (a
+    twentieth of each robot's sequence, at least 5 frames): every ``1 / share``-th stretch."""
+    _, rank, gap = sequence_positions(robots, order)
+    period = max(2, int(round(1.0 / share)))
+    held = (rank // gap) % period == period // 2
+    if not held.any() or held.all():  # too short a sequence for stretches: single frames
+        held = np.arange(len(rank)) % period == 0
+    return np.asarray(held, bool)
 
 
 def _fit_branches(

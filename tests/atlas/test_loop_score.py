@@ -47,7 +47,7 @@ def test_consistency_judges_earlier_observations_by_the_querys_own_rule() -> Non
     scorer = SequenceScorer(make_settings(Path("unused"), loop_closure_threshold=0.8))
     assert scorer._passes(_state(None, 100), 0.85)
     assert not scorer._passes(_state(None, 100), 0.5)
-    # calibrated, 100 frames: the bar is 3 + log10(100) = 5 whatever the cosine
-    assert scorer._passes(_state(6.0, 100), 0.5)
-    assert not scorer._passes(_state(4.0, 100), 0.95)
-    assert not scorer._passes(_state(6.0, 10_000), 0.5)  # a bigger atlas raises the bar to 7
+    # calibrated, 100 frames: the bar is 2 + log10(100) = 4 whatever the cosine
+    assert scorer._passes(_state(4.5, 100), 0.5)
+    assert not scorer._passes(_state(3.5, 100), 0.95)
+    assert not scorer._passes(_state(4.5, 10_000), 0.5)  # a bigger atlas raises the bar to 6

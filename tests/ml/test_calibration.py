@@ -275,3 +275,23 @@ def test_calibrated_score_holds_its_meaning_on_frames_the_fit_never_saw() -> Non
     )
     passing = float(np.mean(calibration.score(cosines) >= 2.0))  # nominally 1 pair in 100
     assert 0.002 <= passing <= 0.05
+
+
+def test_impostor_pairs_are_distinct_on_a_small_atlas() -> None:
+    first, second = impostor_pairs(["r"] * 12, np.arange(12), pairs=10_000, min_gap=5)
+    keys = {(min(i, j), max(i, j)) for i, j in zip(first, second, strict=True)}
+    assert len(keys) == len(first) == sum(1 for i in range(12) for j in range(i + 5, 12))
+
+
+def test_a_tiny_atlas_gets_a_finite_modest_score() -> None:
+    """Ten frames give a few dozen impostor pairs: the tail must not collapse onto them (it
+    once did, scoring an ordinary best match in the hundreds of thousands)."""
+    fitted = Calibration.fit(_synthetic_atlas(n=12), CalibrationConfig(words=8))
+    model = fitted.calibration.impostors
+    assert model is not None and model.pairs < 100
+    top = float(model.quantiles[-1])
+    assert model.score(top + 0.05) < 6.0
+    cosines = np.random.default_rng(1).normal(0.0, 0.05, 40)
+    few = ImpostorModel.fit(cosines)
+    assert few.tail_scale >= 0.5 * 0.05 * 0.3  # about twice the normal excess at its q99
+    assert few.score(0.25) < 10.0

@@ -28,9 +28,10 @@ from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.heads import HeadsConfig
 from service.ml.pipeline import embed_vectors
 from service.ml.precision import Precision
+from service.ml.presets import PRESETS
 from service.ml.training import TrainingConfig, TrainingData, train_heads
 
-LOCAL_DIM, GLOBAL_DIM = 128, 1280  # DISK descriptors, MobileNetV2 channels
+LOCAL_DIM, GLOBAL_DIM = PRESETS["default"].signature.dims  # DISK, MobileNetV2 GeM + layout
 
 
 def unit(x: np.ndarray) -> np.ndarray:

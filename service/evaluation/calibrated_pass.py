@@ -136,7 +136,8 @@ def calibrated_methods(
         if alpha == 0.0:
             name, label = (
                 "global-only",
-                f"global only ({result.preset.backbone.name}, whitened, α=0)",
+                f"global only ({result.preset.backbone.name} {result.preset.backbone.pooling}"
+                ", whitened, α=0)",
             )
             branch_ms = np.add(ms["decode"], ms["global_features"])[n_refs:]
         elif alpha == 1.0:

@@ -189,7 +189,8 @@ def _loopnet_methods(
         if alpha == 0.0:
             method_name, label = (
                 "global-only-uncalibrated",
-                f"global only ({result.preset.backbone.name} GeM raw, α=0)",
+                f"global only ({result.preset.backbone.name} {result.preset.backbone.pooling}"
+                " raw, α=0)",
             )
         else:
             method_name, label = _alpha_label(extractor, alpha)

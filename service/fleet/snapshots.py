@@ -47,6 +47,7 @@ from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
 from service.ml.active_model import ActiveModel
 from service.storage import repository as repo
+from service.storage.feature_store import global_vector_of
 from service.storage.models import Base, Frame, FrameFeatureRow, LoopClosure, Submap
 
 # ----- rows <-> JSON -------------------------------------------------------------------------
@@ -92,7 +93,9 @@ def _features_npz(rows: list[FrameFeatureRow]) -> bytes:
         descriptors=joined("descriptors", "<f2", max(descriptor_dim, 1)),
         scores=joined("scores", "<f4", 1)[:, 0],
         local_vectors=joined("local_vector", "<f4", max(descriptor_dim, 1)),
-        global_vectors=joined("global_vector", "<f4", max(global_dim, 1)),
+        global_vectors=np.stack([global_vector_of(r.global_vector, global_dim) for r in rows])
+        if rows
+        else np.zeros((0, max(global_dim, 1)), "<f4"),
     )
     return buffer.getvalue()
 

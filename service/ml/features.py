@@ -64,3 +64,16 @@ class FrameFeatures:
     image_size: tuple[int, int]
     timings_ms: dict[str, float] = field(default_factory=dict)
     thumbnail: bytes | None = None
+
+    def __post_init__(self) -> None:
+        # What the feature store keeps (float16 descriptors and R): a frame embedded as it
+        # arrives and the same frame re-embedded from the store give the same vector.
+        self.global_vector = as_stored(self.global_vector)
+        self.local = LocalFeatures(
+            self.local.keypoints, as_stored(self.local.descriptors), self.local.scores
+        )
+
+
+def as_stored(values: np.ndarray) -> np.ndarray:
+    """float32 values rounded to float16 precision, as the feature store keeps them."""
+    return np.asarray(values, np.float32).astype(np.float16).astype(np.float32)

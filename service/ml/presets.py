@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, get_type_hints
 
 from service.ml.backbones import BackboneConfig
-from service.ml.backbones.registry import BACKBONES
+from service.ml.backbones.registry import BACKBONES, POOLINGS
 from service.ml.heads import DEFAULT_ALPHA
 from service.ml.local_extractors import LOCAL_EXTRACTORS, LocalExtractorConfig
 
@@ -36,7 +36,7 @@ class FeatureSignature:
     @property
     def dims(self) -> tuple[int, int]:
         """(local descriptor dim, backbone vector dim) of features of this signature."""
-        return LOCAL_EXTRACTORS[self.local.name].descriptor_dim, BACKBONES[self.backbone.name].dim
+        return LOCAL_EXTRACTORS[self.local.name].descriptor_dim, self.backbone.dim
 
     def to_json(self) -> dict[str, Any]:
         return {"local": asdict(self.local), "backbone": asdict(self.backbone)}
@@ -65,6 +65,8 @@ class FeatureSignature:
             raise ValueError(NOT_A_SIGNATURE)
         if signature.local.name not in LOCAL_EXTRACTORS or signature.backbone.name not in BACKBONES:
             raise ValueError(f"unknown extractor or backbone in {signature}")
+        if signature.backbone.pooling not in POOLINGS:
+            raise ValueError(f"unknown pooling in {signature}")
         return signature
 
     def matches(self, stored: object) -> bool:
@@ -92,12 +94,12 @@ PRESETS: dict[str, ModelPreset] = {
     "default": ModelPreset(
         "default",
         LocalExtractorConfig(name="disk", long_side=512, max_keypoints=1024, nms_window=5),
-        BackboneConfig(name="mobilenetv2", input_size=224, pooling="gem"),
+        BackboneConfig(name="mobilenetv2", input_size=224, pooling="gem-layout"),
     ),
     "fast": ModelPreset(
         "fast",
         LocalExtractorConfig(name="xfeat", long_side=320, max_keypoints=512, nms_window=5),
-        BackboneConfig(name="mobilenetv2", input_size=160, pooling="gem"),
+        BackboneConfig(name="mobilenetv2", input_size=160, pooling="gem-layout"),
     ),
     "paper": ModelPreset(
         "paper",

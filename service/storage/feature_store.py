@@ -16,8 +16,16 @@ from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage.models import Frame, FrameFeatureRow
 
 
+def global_vector_of(stored: bytes, dim: int) -> np.ndarray:
+    """A stored backbone vector as float32: float16 since the layout pooling made R 2,816
+    values long (rows written before that hold float32; the length tells which)."""
+    dtype = "<f2" if len(stored) == 2 * dim else "<f4"
+    return np.frombuffer(stored, dtype).astype(np.float32)
+
+
 def to_row(frame_id: int | None, features: FrameFeatures) -> FrameFeatureRow:
-    """Pack features: descriptors as float16 (halves the store), everything else float32."""
+    """Pack features: descriptors and the backbone vector R as float16 (features already hold
+    float16-exact values, so a stored frame is the frame), the rest float32."""
     local = features.local
     row = FrameFeatureRow(
         descriptor_dim=int(local.descriptors.shape[1]),
@@ -26,7 +34,7 @@ def to_row(frame_id: int | None, features: FrameFeatures) -> FrameFeatureRow:
         descriptors=np.ascontiguousarray(local.descriptors, "<f2").tobytes(),
         scores=np.ascontiguousarray(local.scores, "<f4").tobytes(),
         local_vector=np.ascontiguousarray(features.local_vector, "<f4").tobytes(),
-        global_vector=np.ascontiguousarray(features.global_vector, "<f4").tobytes(),
+        global_vector=np.ascontiguousarray(features.global_vector, "<f2").tobytes(),
     )
     if frame_id is not None:
         row.frame_id = frame_id
@@ -106,7 +114,7 @@ def iter_stored_vectors(
         submaps = np.array([r.submap_id for r in rows], np.int64)
         robots = [r.robot_id for r in rows]
         local = np.stack([np.frombuffer(r.local_vector, "<f4") for r in rows])
-        global_ = np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows])
+        global_ = np.stack([global_vector_of(r.global_vector, r.global_dim) for r in rows])
         yield StoredVectors(ids, local, global_, submaps, robots)
 
 
@@ -171,6 +179,7 @@ def iter_stored_descriptors(
         FrameFeatureRow.descriptor_dim,
         FrameFeatureRow.scores,
         FrameFeatureRow.global_vector,
+        FrameFeatureRow.global_dim,
     )
     for rows in _stored_rows(session, atlas_id, columns, frame_ids, batch):
         yield StoredDescriptors(
@@ -179,7 +188,7 @@ def iter_stored_descriptors(
                 np.frombuffer(r.descriptors, "<f2").reshape(-1, r.descriptor_dim) for r in rows
             ],
             scores=[np.frombuffer(r.scores, "<f4") for r in rows],
-            global_=np.stack([np.frombuffer(r.global_vector, "<f4") for r in rows]),
+            global_=np.stack([global_vector_of(r.global_vector, r.global_dim) for r in rows]),
             submaps=np.array([r.submap_id for r in rows], np.int64),
             robots=[r.robot_id for r in rows],
         )

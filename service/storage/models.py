@@ -127,7 +127,7 @@ class FrameFeatureRow(Base):
 
     Arrays are raw little-endian bytes: keypoints float32 (N x 2), descriptors float16
     (N x descriptor_dim), scores float32 (N), local_vector float32 (descriptor_dim),
-    global_vector float32 (global_dim).
+    global_vector float16 (global_dim; float32 in rows written before the layout pooling).
     """
 
     __tablename__ = "frame_features"

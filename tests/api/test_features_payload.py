@@ -137,7 +137,7 @@ MALFORMED: dict[str, tuple[Callable[[bytes, FeatureSignature, FrameFeatures], by
     ),
     "global width": (
         lambda p, s, f: _rewrite(p, global_vector=np.ones(512, np.float32) / np.sqrt(512)),
-        "global_vector must have 1280",
+        "global_vector must have 2816",
     ),
     "scores count": (lambda p, s, f: _rewrite(p, scores=np.ones(3, np.float32)), "scores must"),
     "keypoint outside": (

@@ -23,7 +23,7 @@ from tests.conftest import make_settings, wait_ready
 
 PLACES = 40
 DECOYS = [3, 11, 37, 7, 15, 33, 1, 9, 17, 35]  # never two consecutive places, never near 20-31
-LOCAL_DIM, GLOBAL_DIM = 128, 1280  # the default preset's DISK + MobileNetV2
+LOCAL_DIM, GLOBAL_DIM = 128, 2816  # the default preset's DISK + MobileNetV2 (GeM + layout)
 
 
 def place_vectors() -> np.ndarray:

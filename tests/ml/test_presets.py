@@ -24,7 +24,7 @@ def test_presets_and_overrides() -> None:
 def test_a_signature_round_trips_and_refuses_what_is_not_one() -> None:
     signature = PRESETS["fast"].signature
     assert FeatureSignature.from_json(signature.to_json()) == signature
-    assert signature.dims == (64, 1280)
+    assert signature.dims == (64, 1280 + 96 * 16)  # GeM beside the 4 x 4 layout of 96 maps
     assert signature != PRESETS["default"].signature
     assert signature.matches(signature.to_json())
     assert not signature.matches(PRESETS["default"].signature.to_json())
@@ -44,6 +44,7 @@ def test_a_signature_round_trips_and_refuses_what_is_not_one() -> None:
         edited("local", "nms_window", True),
         edited("local", "name", "sift"),
         edited("backbone", "weights", "x"),
+        edited("backbone", "pooling", "max"),
         {"local": signature.to_json()["local"], "backbone": None},
     ):
         with pytest.raises(ValueError):
@@ -60,8 +61,10 @@ def test_fast_preset_features(fast_pipeline: FeaturePipeline) -> None:
     features = fast_pipeline.extract(rgb)
     assert 0 < features.local.count <= 512
     assert features.local.descriptors.shape[1] == 64
-    assert features.global_vector.shape == (1280,)
-    assert abs(float(np.linalg.norm(features.global_vector)) - 1.0) < 1e-5
+    assert features.global_vector.shape == (1280 + 96 * 16,)
+    # unit length, up to the float16 rounding the feature store keeps it in
+    assert abs(float(np.linalg.norm(features.global_vector)) - 1.0) < 1e-3
+    assert np.array_equal(features.global_vector.astype(np.float16), features.global_vector)
     # keypoints come back in the decoded frame's pixels, not XFeat's 320-px working image
     assert features.local.keypoints[:, 0].max() > 320
 

@@ -60,6 +60,7 @@ class MobileNetV2Trunk(nn.Module):
     """``B x 3 x H x W`` ImageNet-normalised -> ``B x 1280 x H/32 x W/32`` feature map."""
 
     out_channels = 1280
+    stride16_end = 14  # features[:14] end at the last stride-16 block (96 channels)
 
     def __init__(self) -> None:
         super().__init__()

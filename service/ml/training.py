@@ -60,8 +60,12 @@ class TrainingConfig:
     margin: float = Field(
         default=1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
     )
-    embed_dim: int = Field(
-        default=256, ge=2, le=4096, description="Size of the trained fused embedding."
+    embed_dim: int | None = Field(
+        default=None,
+        ge=2,
+        le=4096,
+        description="Size of the trained fused embedding; unset: the active heads' fused "
+        "input size, so training starts from the active embedding itself.",
     )
     train: tuple[TrainablePart, ...] = Field(
         default_factory=lambda: TRAINABLE_PARTS,
@@ -107,7 +111,7 @@ class TrainingConfig:
         """Refuse an ``embed_dim`` the atlas's features cannot fill: the fusion starts from a
         PCA of the fused input, which has only ``local_dim + global_dim`` directions."""
         fused_input = base.local_dim + base.global_dim
-        if self.embed_dim > fused_input:
+        if self.embed_dim is not None and self.embed_dim > fused_input:
             raise ValueError(
                 f"embed_dim {self.embed_dim} exceeds the atlas's fused input size {fused_input} "
                 f"({base.local_dim} local + {base.global_dim} global)"
@@ -338,7 +342,9 @@ def train_heads(
     Args:
         data: every frame of the atlas (D, R, submap ids).
         base: dimensions and alpha of the untrained model; ``config.embed_dim`` sets the
-            trained model's fused size.
+            trained model's fused size (unset: ``base``'s fused input size, so the PCA start
+            is a rotation of the centred active embedding and loses nothing: a calibrated
+            atlas's branches are centred, and epoch 0 ranks as the active version does).
         shot_idx: the training frames (indices into ``data``); None: ``config.shots`` per
             submap by :func:`split_shots`. The other frames validate.
         progress: called with (fraction 0..1, message) once per epoch.
@@ -355,7 +361,7 @@ def train_heads(
         global_dim=base.global_dim,
         alpha=base.alpha,
         hidden_dim=base.hidden_dim,
-        embed_dim=config.embed_dim,
+        embed_dim=config.embed_dim or base.local_dim + base.global_dim,
     )
     heads = LoopNetHeads(heads_config, class_labels=labels)
     pca_init(heads, data.local, data.global_, seed=config.seed)

@@ -5,9 +5,26 @@ the command runs)."""
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
+from typing import Any
+
+
+def _named_values(pairs: list[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` strings as a dict, each value read as JSON where it parses (numbers,
+    booleans, lists) and as text otherwise; the retraining job's schema validates them."""
+    values: dict[str, Any] = {}
+    for pair in pairs:
+        name, sep, text = pair.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"error: expected NAME=VALUE, got {pair!r}")
+        try:
+            values[name] = json.loads(text)
+        except json.JSONDecodeError:
+            values[name] = text
+    return values
 
 
 def _csv_list(kind: type, text: str) -> tuple:  # type: ignore[type-arg]
@@ -60,6 +77,14 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "--retrain-protocols",
         default="map,revisit",
         help="map (reference shots only) and/or revisit (the paper's: also query-condition shots)",
+    )
+    ev.add_argument(
+        "--retrain-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a retraining job parameter other than its default (repeatable), e.g. "
+        "positive_window=0",
     )
     ev.add_argument(
         "--verify",
@@ -195,6 +220,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         examples=args.examples,
         retrain_shots=_csv_list(int, args.retrain_shots),
         retrain_protocols=_csv_list(str, args.retrain_protocols),
+        retrain_params=_named_values(args.retrain_param),
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         query_stride=args.query_stride,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,16 @@ from service.evaluation.service_pass import PassResult
 from service.ml.calibration import Calibration, CalibrationConfig, FittedCalibration
 
 DEFAULT_CALIBRATION = CalibrationConfig()
+
+
+@dataclass
+class CalibratedBranches:
+    """The service row's calibration and the calibrated branches (D_w, R_w) it gives the
+    references and the queries: what retrained heads start from, as a retraining job's do."""
+
+    calibration: Calibration
+    references: tuple[np.ndarray, np.ndarray]
+    queries: tuple[np.ndarray, np.ndarray]
 
 
 def _query_branches(
@@ -57,11 +67,14 @@ def calibrated_methods(
     with_global_only: bool,
     config: CalibrationConfig = DEFAULT_CALIBRATION,
     vectors: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    branches: dict[str, CalibratedBranches] | None = None,
 ) -> list[MethodResult]:
     """The calibrated service row ``loopnet-<extractor>`` and its ablations.
 
     ``vectors``, when given, receives the references' and queries' unit embeddings of the
     service row (and of ``global-only``) by row name: what the sequence rows score on.
+    ``branches``, when given, receives the service row's :class:`CalibratedBranches` by row
+    name: what the retrained rows train on.
     """
     n_refs = len(dataset.references)
     ms = result.stage_ms
@@ -88,6 +101,8 @@ def calibrated_methods(
     queries = (query_local, query_global)
     if vectors is not None:
         vectors[f"loopnet-{extractor}"] = (calibration.fuse(*refs), calibration.fuse(*queries))
+    if branches is not None:
+        branches[f"loopnet-{extractor}"] = CalibratedBranches(calibration, refs, queries)
     ranking, search_ms = rank(calibration, refs, queries)
     cosine_top = ranking.scores[:, 0].copy()
     ranking = Ranking(ranking.indices, calibration.score(ranking.scores))
@@ -114,7 +129,7 @@ def calibrated_methods(
             **describe,
             **service_details,
             "score": "calibrated: -log10 P(impostor cosine >= c)",
-            "top1_spread": _spread(cosine_top, ranking.scores[:, 0], right),
+            "top1_spread": top1_spread(cosine_top, ranking.scores[:, 0], right),
         },
     )
     methods = [main]
@@ -196,7 +211,7 @@ def _describe(fitted: FittedCalibration, fit_s: float, embed_ms: float) -> dict[
     }
 
 
-def _spread(cosines: np.ndarray, scores: np.ndarray, right: np.ndarray) -> dict[str, Any]:
+def top1_spread(cosines: np.ndarray, scores: np.ndarray, right: np.ndarray) -> dict[str, Any]:
     """Top-1 cosines and calibrated scores of right and wrong best matches."""
 
     def stats(values: np.ndarray) -> dict[str, float] | None:

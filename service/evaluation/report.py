@@ -48,8 +48,9 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
     """Before -> after retraining, per protocol and K, on the same test queries."""
     lines = [
         "| protocol | K | train frames | test queries | R@1 | R@5 | submap acc (nearest frame) "
-        "| submap acc (classifier) | AUC-PR | R@100%P | train s | epochs (best) |",
-        "|" + " --- |" * 12,
+        "| submap acc (classifier) | AUC-PR | R@100%P | top-1 cosine right / wrong (median) "
+        "| train s | epochs (best) |",
+        "|" + " --- |" * 13,
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
@@ -61,6 +62,11 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         used = row.get("shots_used", row["shots"])
         return str(row["shots"]) if used == row["shots"] else f"{used} (asked {row['shots']})"
 
+    def spread(row: dict[str, Any]) -> str:
+        cosine = (row.get("top1_spread") or {}).get("cosine") or {}
+        right, wrong = cosine.get("right"), cosine.get("wrong")
+        return " / ".join(_fmt(side["median"]) if side else "-" for side in (right, wrong))
+
     def epochs(row: dict[str, Any]) -> str:
         text = f"{row['epochs_run']} ({row['best_epoch']})"
         return text + ": starting heads" if row["best_epoch"] == 0 else text
@@ -71,11 +77,13 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {row['test_queries']} | {arrow('recall@1', row)} | {arrow('recall@5', row)} "
             f"| {arrow('submap_accuracy', row)} | {_fmt(row['classifier_submap_accuracy'])} "
             f"| {arrow('auc_pr', row)} | {arrow('recall_at_100_precision', row)} "
-            f"| {_fmt(row['train_seconds'], 1)} | {epochs(row)} |"
+            f"| {spread(row)} | {_fmt(row['train_seconds'], 1)} | {epochs(row)} |"
         )
     lines += [
         "",
-        "Before = the untrained heads on the same test queries; only gains are in bold; K is "
+        "Before = the row the heads start from (the calibrated service row when the map could "
+        "be calibrated, as a job starts from the latest calibration; else the uncalibrated "
+        "one) on the same test queries; only gains are in bold; K is "
         "the map shots per submap actually used (a submap keeps one frame for validation); "
         "best epoch 0 means the job would ship its starting heads. `map`: K reference frames per "
         "submap train the heads (what a retraining job does). `revisit` (the paper's few-shot "

@@ -12,29 +12,59 @@ protocols, both with K shots per submap and test queries that no training step h
   both, and tested on the remaining queries only. Validation (best epoch, early stopping) uses
   map frames only.
 
-Rankings are over the reference frames only. The untrained rows are re-scored on the same test
-queries, so each "before -> after" pair compares like with like.
+Rankings are over the reference frames only. The starting rows are re-scored on the same test
+queries, so each "before -> after" pair compares like with like. With a calibration (the
+service path), the heads train on the calibrated branches and start from the calibrated service
+row, as a retraining job starts from the latest calibration; the trained embedding's scores come
+from an impostor model refitted on the references' trained embeddings, as the job refits it.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 import torch
 
+from service.evaluation.calibrated_pass import CalibratedBranches, top1_spread
 from service.evaluation.datasets import Dataset
-from service.evaluation.metrics import Ranking, rank_by_similarity
+from service.evaluation.metrics import Ranking, correct_matrix, rank_by_similarity
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.evaluation.service_pass import PassResult
 from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.impostors import impostor_model_of
 from service.ml.pipeline import embed_vectors
 from service.ml.training import TrainingConfig, TrainingData, split_shots, train_heads
 
 PROTOCOLS = ("map", "revisit")
+MAP_ROBOT, QUERY_ROBOT = "map", "query"  # the two traversals, as two robots' sequences
+
+
+@dataclass
+class StartingPoint:
+    """What the retrained heads start from: the references' and queries' branch vectors, the
+    heads over them, and the row they are compared with (same test queries)."""
+
+    references: tuple[np.ndarray, np.ndarray]
+    queries: tuple[np.ndarray, np.ndarray]
+    base: HeadsConfig
+    before: MethodResult
+    calibrated: bool
+
+    @classmethod
+    def of(
+        cls, result: PassResult, before: MethodResult, calibrated: CalibratedBranches | None
+    ) -> StartingPoint:
+        """The calibrated branches when there is a calibration, else the stored (D, R)."""
+        if calibrated is None:
+            local, global_ = result.reference_vectors
+            base = HeadsConfig(local.shape[1], global_.shape[1], alpha=result.preset.alpha)
+            return cls(result.reference_vectors, result.query_vectors, base, before, False)
+        base = calibrated.calibration.heads_config()
+        return cls(calibrated.references, calibrated.queries, base, before, True)
 
 
 @dataclass
@@ -52,6 +82,7 @@ class RetrainingRow:
     epochs_run: int
     best_epoch: int
     shots_used: int = 0
+    calibrated: bool = False
 
     def row(self) -> dict[str, Any]:
         return {
@@ -67,6 +98,8 @@ class RetrainingRow:
             "best_epoch": self.best_epoch,
             "shots_used": self.shots_used,
             "starting_heads": self.best_epoch == 0,
+            "calibrated_start": self.calibrated,
+            "top1_spread": self.after.details.get("top1_spread"),
         }
 
 
@@ -121,29 +154,43 @@ def _rows(ranking: Ranking, keep: np.ndarray) -> Ranking:
     return Ranking(ranking.indices[keep], ranking.scores[keep])
 
 
+def _scored(references: np.ndarray, ranking: Ranking, seed: int) -> tuple[Ranking, str]:
+    """The ranking with calibrated scores from an impostor model refitted on the references'
+    trained embeddings (the job's refit), or with cosines where the map is too small for one."""
+    try:
+        impostors = impostor_model_of(
+            references, [MAP_ROBOT] * len(references), np.arange(len(references)), seed=seed
+        )
+    except ValueError:
+        return ranking, "cosine (too few references for an impostor model)"
+    scored = Ranking(ranking.indices, impostors.score(ranking.scores))
+    return scored, "calibrated: -log10 P(impostor cosine >= c), impostors refitted"
+
+
 def retraining_rows(
     dataset: Dataset,
     submap_of: Sequence[int],
     result: PassResult,
-    untrained: MethodResult,
+    start: StartingPoint,
     *,
     shots: Sequence[int],
     protocols: Sequence[str] = PROTOCOLS,
+    params: Mapping[str, Any] | None = None,
     k: int = 10,
     extractor_label: str = "DISK",
 ) -> list[RetrainingRow]:
-    """Train and evaluate one retrained model per (protocol, K)."""
+    """Train and evaluate one retrained model per (protocol, K) from ``start``, with the job's
+    default parameters except ``params`` (``TrainingConfig`` fields)."""
     unknown = set(protocols) - set(PROTOCOLS)
     if unknown:
         raise ValueError(f"unknown retraining protocol(s) {sorted(unknown)}; use {PROTOCOLS}")
-    ref_local, ref_global = result.reference_vectors
-    query_local, query_global = result.query_vectors
+    ref_local, ref_global = start.references
+    query_local, query_global = start.queries
     ref_submaps = np.asarray(submap_of, dtype=np.int64)
     n_refs = len(ref_submaps)
     revisited = query_submaps(dataset, submap_of)
-    base = HeadsConfig(
-        local_dim=ref_local.shape[1], global_dim=ref_global.shape[1], alpha=result.preset.alpha
-    )
+    base = start.base
+    untrained = start.before
     extraction_ms = np.add.reduce(
         [
             np.asarray(result.stage_ms[s][n_refs:])
@@ -165,9 +212,10 @@ def retraining_rows(
                 local=np.concatenate([ref_local, query_local[query_shots]]),
                 global_=np.concatenate([ref_global, query_global[query_shots]]),
                 submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
-                frame_ids=np.arange(n_refs + len(query_shots)),
+                frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
+                robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
             )
-            config = TrainingConfig(shots=k_shots)
+            config = TrainingConfig(**{**(params or {}), "shots": k_shots})
             trained = train_heads(
                 data,
                 base,
@@ -175,16 +223,20 @@ def retraining_rows(
                 shot_idx=np.concatenate([map_shots, n_refs + np.arange(len(query_shots))]),
             )
             heads = trained.heads
-            start = time.perf_counter()
+            started = time.perf_counter()
             references = embed_vectors(heads, ref_local, ref_global)
             test_vectors = (query_local[test], query_global[test])
             ranking = rank_by_similarity(embed_vectors(heads, *test_vectors) @ references.T, k)
-            per_query = (time.perf_counter() - start) * 1000.0 / max(len(test), 1)
+            per_query = (time.perf_counter() - started) * 1000.0 / max(len(test), 1)
+            cosine_top = ranking.scores[:, 0].copy()
+            ranking, score_text = _scored(references, ranking, config.seed)
             subset = _subset(dataset, test)
+            right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
             used = shots_used(ref_submaps, map_shots)
             name = f"retrained-{protocol}-k{k_shots}"
             shots_text = f"{used}" if used == k_shots else f"{used} (K={k_shots} asked)"
-            label = f"LoopNet {extractor_label} retrained, {shots_text} " + (
+            start_text = "calibrated" if start.calibrated else "uncalibrated"
+            label = f"LoopNet {extractor_label} {start_text}, retrained, {shots_text} " + (
                 "map shots/submap" if protocol == "map" else "map + revisit shots/submap"
             )
             if int(trained.metrics["best_epoch"]) == 0:
@@ -205,6 +257,8 @@ def retraining_rows(
                         for key in ("epochs_run", "best_epoch", "train_seconds", "shots")
                     },
                     "training_config": trained.metrics["config"],
+                    "score": score_text,
+                    "top1_spread": top1_spread(cosine_top, ranking.scores[:, 0], right),
                 },
             )
             before = evaluate_ranking(
@@ -230,6 +284,7 @@ def retraining_rows(
                     epochs_run=int(trained.metrics["epochs_run"]),
                     best_epoch=int(trained.metrics["best_epoch"]),
                     shots_used=used,
+                    calibrated=start.calibrated,
                 )
             )
     return rows

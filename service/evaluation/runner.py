@@ -34,7 +34,11 @@ from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.baselines import build_baseline
 from service.evaluation.baselines.seqslam import full_seqslam
-from service.evaluation.calibrated_pass import DEFAULT_CALIBRATION, calibrated_methods
+from service.evaluation.calibrated_pass import (
+    DEFAULT_CALIBRATION,
+    CalibratedBranches,
+    calibrated_methods,
+)
 from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
 from service.evaluation.image_check import unreadable_images
 from service.evaluation.metrics import rank_by_similarity, summary
@@ -44,7 +48,12 @@ from service.evaluation.protocol import (
     embedding_ranking,
     evaluate_ranking,
 )
-from service.evaluation.retraining_pass import PROTOCOLS, RetrainingRow, retraining_rows
+from service.evaluation.retraining_pass import (
+    PROTOCOLS,
+    RetrainingRow,
+    StartingPoint,
+    retraining_rows,
+)
 from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.evaluation.verification_pass import (
@@ -86,6 +95,8 @@ class EvalConfig:
         cache_dir: where extracted features are cached (None: ``output/cache``).
         retrain_shots: K values (shots per submap) of the retrained rows; empty: none.
         retrain_protocols: ``map`` and/or ``revisit`` (see ``retraining_pass``).
+        retrain_params: retraining job parameters (``TrainingConfig`` fields) other than the
+            job's defaults, e.g. ``{"positive_window": 0}`` for an ablation; ``shots`` is K.
         verify: matchers ("mnn", "lightglue") whose geometric verification of the first
             extractor's ranking adds a row each; empty: none.
         verify_top: candidates verified per query.
@@ -119,6 +130,7 @@ class EvalConfig:
     k: int = 10
     retrain_shots: tuple[int, ...] = ()
     retrain_protocols: tuple[str, ...] = PROTOCOLS
+    retrain_params: dict[str, Any] = field(default_factory=dict)
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5
@@ -421,6 +433,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     first_keypoints: KeypointCache | None = None
     passes: list[PassResult] = []
     calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    calibrated_branches: dict[str, CalibratedBranches] = {}
     retraining: list[RetrainingRow] = []
 
     def report_so_far(partial: str | None) -> dict[str, Any]:
@@ -497,6 +510,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
                     k=config.k,
                     with_global_only=first_pass is None,
                     vectors=calibrated_vectors,
+                    branches=calibrated_branches,
                 )
                 if calibrates
                 else []
@@ -522,14 +536,20 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
     methods += global_only
     global_only = []
     if config.retrain_shots:
-        extractor = config.extractors[0]
+        # the heads start from the service row: calibrated when the pass could calibrate
+        extractor = first_pass.preset.local.name
+        service_row = f"loopnet-{extractor}"
+        calibrated_start = calibrated_branches.get(service_row)
+        before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
+        before = next(m for m in methods if m.name == before_row)
         retraining = retraining_rows(
             dataset,
             submap_of,
             first_pass,
-            next(m for m in methods if m.kind == UNCALIBRATED),
+            StartingPoint.of(first_pass, before, calibrated_start),
             shots=config.retrain_shots,
             protocols=config.retrain_protocols,
+            params=config.retrain_params,
             k=config.k,
             extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
         )

@@ -142,7 +142,9 @@ class JobRunner:
             with self.sessions() as session:
                 return jobs.get_job(session, job_id=job_id).cancel_requested
 
-        data = TrainingData(stored.local, stored.global_, stored.submaps, stored.ids)
+        data = TrainingData(
+            stored.local, stored.global_, stored.submaps, stored.ids, np.asarray(stored.robots)
+        )
         shots, held_out = split_shots(data.submaps, config.shots)
         result = train_heads(
             data, base, config, progress=on_epoch, should_stop=cancelled, shot_idx=shots

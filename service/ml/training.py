@@ -4,9 +4,11 @@ Both heads learn together on K frames ("shots") per submap:
 
 - the classification head with cross-entropy over the atlas's submaps;
 - the similarity head with a contrastive loss of margin ``m`` (Hadsell et al. 2006) on the
-  unit embeddings: pairs from one submap are pulled together, pairs from different submaps
-  pushed at least ``m`` apart (Euclidean distance on the unit sphere, so ``m`` = 1 means
-  cosine <= 0.5).
+  unit embeddings: temporal neighbours are pulled together and different places pushed at
+  least ``m`` apart (Euclidean distance on the unit sphere, so ``m`` = 1 means cosine <= 0.5);
+  see :func:`contrastive_pairs` for which pairs are which. Pulling a whole submap together
+  (the first design) merged its far frames and pushed apart neighbours on either side of a
+  submap boundary, and map-only retraining lowered Recall@1 (benchmarks/RESULTS.md).
 
 Fusion starts from a PCA of the atlas's stored features (centred, ``embed_dim`` components), the
 classifier from the shots' per-submap mean embeddings (prototypes), and the similarity head as a
@@ -31,6 +33,7 @@ from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
+from service.ml.impostors import sequence_positions
 
 TrainablePart = Literal["fusion", "similarity", "classifier"]
 TRAINABLE_PARTS: tuple[TrainablePart, ...] = ("fusion", "similarity", "classifier")
@@ -57,8 +60,12 @@ class TrainingConfig:
     margin: float = Field(
         default=1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
     )
-    embed_dim: int = Field(
-        default=256, ge=2, le=4096, description="Size of the trained fused embedding."
+    embed_dim: int | None = Field(
+        default=None,
+        ge=2,
+        le=4096,
+        description="Size of the trained fused embedding; unset: the active heads' fused "
+        "input size, so training starts from the active embedding itself.",
     )
     train: tuple[TrainablePart, ...] = Field(
         default_factory=lambda: TRAINABLE_PARTS,
@@ -85,6 +92,14 @@ class TrainingConfig:
     frame_temperature: float = Field(
         default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
     )
+    positive_window: int = Field(
+        default=2,
+        ge=0,
+        le=1000,
+        description="Contrastive positives: frames of one submap at most this many frames "
+        "apart in their robot's sequence; 0: the first design (every pair of a submap "
+        "positive, every pair of different submaps negative).",
+    )
 
     def __post_init__(self) -> None:
         if self.classification_weight == 0 and self.contrastive_weight == 0:
@@ -96,7 +111,7 @@ class TrainingConfig:
         """Refuse an ``embed_dim`` the atlas's features cannot fill: the fusion starts from a
         PCA of the fused input, which has only ``local_dim + global_dim`` directions."""
         fused_input = base.local_dim + base.global_dim
-        if self.embed_dim > fused_input:
+        if self.embed_dim is not None and self.embed_dim > fused_input:
             raise ValueError(
                 f"embed_dim {self.embed_dim} exceeds the atlas's fused input size {fused_input} "
                 f"({base.local_dim} local + {base.global_dim} global)"
@@ -105,12 +120,23 @@ class TrainingConfig:
 
 @dataclass
 class TrainingData:
-    """Stored vectors of an atlas's frames: ``N x D`` local, ``N x C`` global, submap labels."""
+    """Stored vectors of an atlas's frames: ``N x D`` local, ``N x C`` global, submap labels.
+
+    ``frame_ids`` order each robot's frames (ingest order, as the impostor model reads it);
+    ``robots`` names each frame's robot (None: one robot's sequence).
+    """
 
     local: np.ndarray
     global_: np.ndarray
     submaps: np.ndarray
     frame_ids: np.ndarray
+    robots: np.ndarray | None = None
+
+    def sequence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per frame: robot code, rank in that robot's sequence, and the gap beyond which two
+        of its frames are different places (:func:`service.ml.impostors.sequence_positions`)."""
+        robots = self.robots if self.robots is not None else np.zeros(len(self.submaps))
+        return sequence_positions([str(r) for r in robots], np.asarray(self.frame_ids))
 
 
 @dataclass
@@ -182,12 +208,40 @@ def pca_init(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, seed: 
         fusion.bias.copy_(-(basis_t @ mean))
 
 
-def contrastive_loss(embeddings: torch.Tensor, labels: torch.Tensor, margin: float) -> torch.Tensor:
-    """Mean of ``d^2`` over same-label pairs plus mean of ``max(0, m - d)^2`` over the others."""
+def contrastive_pairs(
+    data: TrainingData, idx: np.ndarray, window: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boolean ``n x n`` masks of positive and negative pairs among the frames ``idx``.
+
+    Positives: two frames of one submap and one robot at most ``window`` frames apart in the
+    robot's sequence (its every frame counts, shots or not), and frames of one submap from
+    different robots (a revisit labelled with its submap: nothing tells which of its frames it
+    sees). Negatives: frames of different submaps that are different places by sequence too
+    (other robots, or one robot's frames at least the impostor gap apart). Neighbours on
+    either side of a submap boundary are neither, and so are a submap's far frames: nothing
+    forces them together or apart. ``window`` 0 is the first design: every pair of a submap
+    positive, every pair of different submaps negative.
+    """
+    submaps = data.submaps[idx]
+    same_submap = submaps[:, None] == submaps[None, :]
+    if window == 0:
+        positives, negatives = same_submap.copy(), ~same_submap
+    else:
+        codes, rank, gap = (part[idx] for part in data.sequence())
+        same_robot = codes[:, None] == codes[None, :]
+        apart = np.abs(rank[:, None] - rank[None, :])
+        positives = same_submap & ((apart <= window) | ~same_robot)
+        negatives = ~same_submap & (~same_robot | (apart >= gap[:, None]))
+    np.fill_diagonal(positives, False)
+    return torch.from_numpy(positives), torch.from_numpy(negatives)
+
+
+def contrastive_loss(
+    embeddings: torch.Tensor, positives: torch.Tensor, negatives: torch.Tensor, margin: float
+) -> torch.Tensor:
+    """Mean of ``d^2`` over the positive pairs plus mean of ``max(0, m - d)^2`` over the
+    negative ones (boolean ``n x n`` masks, e.g. from :func:`contrastive_pairs`)."""
     distances = torch.cdist(embeddings, embeddings).clamp_min(1e-9)
-    same = labels[:, None] == labels[None, :]
-    off_diagonal = ~torch.eye(len(labels), dtype=torch.bool)
-    positives, negatives = same & off_diagonal, ~same
     loss = embeddings.new_zeros(())
     if positives.any():
         loss = loss + distances[positives].pow(2).mean()
@@ -217,12 +271,13 @@ def _losses(
     local: torch.Tensor,
     global_: torch.Tensor,
     targets: torch.Tensor,
+    pairs: tuple[torch.Tensor, torch.Tensor],
     config: TrainingConfig,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     fused = heads.fusion(local, global_)
     assert heads.classifier is not None
     classification = F.cross_entropy(heads.classifier(fused), targets)
-    contrastive = contrastive_loss(heads.similarity(fused), targets, config.margin)
+    contrastive = contrastive_loss(heads.similarity(fused), *pairs, config.margin)
     return classification, contrastive
 
 
@@ -262,10 +317,12 @@ def evaluate(
     if config is not None:
         index_of = {label: i for i, label in enumerate(heads.class_labels)}
         targets = torch.tensor([index_of[int(t)] for t in truth], dtype=torch.long)
-        sample = slice(0, VALIDATION_LOSS_SAMPLE)
+        sample = query_idx[:VALIDATION_LOSS_SAMPLE]
         loss = config.classification_weight * F.cross_entropy(logits, targets)
         loss += config.contrastive_weight * contrastive_loss(
-            queries[sample], targets[sample], config.margin
+            queries[: len(sample)],
+            *contrastive_pairs(data, sample, config.positive_window),
+            config.margin,
         )
         metrics["loss"] = loss.item()
     return metrics
@@ -285,7 +342,9 @@ def train_heads(
     Args:
         data: every frame of the atlas (D, R, submap ids).
         base: dimensions and alpha of the untrained model; ``config.embed_dim`` sets the
-            trained model's fused size.
+            trained model's fused size (unset: ``base``'s fused input size, so the PCA start
+            is a rotation of the centred active embedding and loses nothing: a calibrated
+            atlas's branches are centred, and epoch 0 ranks as the active version does).
         shot_idx: the training frames (indices into ``data``); None: ``config.shots`` per
             submap by :func:`split_shots`. The other frames validate.
         progress: called with (fraction 0..1, message) once per epoch.
@@ -302,7 +361,7 @@ def train_heads(
         global_dim=base.global_dim,
         alpha=base.alpha,
         hidden_dim=base.hidden_dim,
-        embed_dim=config.embed_dim,
+        embed_dim=config.embed_dim or base.local_dim + base.global_dim,
     )
     heads = LoopNetHeads(heads_config, class_labels=labels)
     pca_init(heads, data.local, data.global_, seed=config.seed)
@@ -316,6 +375,7 @@ def train_heads(
     targets = torch.tensor([label_index[int(s)] for s in data.submaps], dtype=torch.long)
     local = torch.from_numpy(data.local)
     global_ = torch.from_numpy(data.global_)
+    pairs = contrastive_pairs(data, train_idx, config.positive_window)
     _init_prototypes(heads, local[train_idx], global_[train_idx], targets[train_idx], len(labels))
     before = evaluate(heads, data, train_idx, val_idx)
 
@@ -352,6 +412,7 @@ def train_heads(
             _augment(local[train_idx], config, generator),
             _augment(global_[train_idx], config, generator),
             targets[train_idx],
+            pairs,
             config,
         )
         loss = config.classification_weight * classification

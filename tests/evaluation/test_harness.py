@@ -122,9 +122,16 @@ def test_retrained_rows_train_on_shots_and_test_on_the_other_queries(slice_run) 
         assert 0.0 <= row.classifier_submap_accuracy <= 1.0
         for method in (row.before, row.after):
             assert 0.0 <= method.recall[1] <= method.recall[5] <= 1.0
-    # "before" is the untrained service ranking restricted to the same test queries
-    uncalibrated = {m.name: m for m in first.methods}["loopnet-disk-uncalibrated"]
-    assert rows[("map", 1)].before.recall == uncalibrated.recall
+    # the heads start from the calibrated service row, as a job starts from the latest
+    # calibration: "before" is its ranking restricted to the same test queries
+    calibrated = {m.name: m for m in first.methods}["loopnet-disk"]
+    assert rows[("map", 1)].before.recall == calibrated.recall
+    assert all(row.calibrated for row in rows.values())
+    assert all(
+        row.after.label.startswith("LoopNet DISK calibrated, retrained") for row in rows.values()
+    )
+    spread = rows[("map", 3)].row()["top1_spread"]
+    assert set(spread) == {"cosine", "score"} and spread["cosine"]["right"]["n"] >= 1
     report = json.loads((config.output / "retrained" / "report.json").read_text())
     assert [r["protocol"] for r in report["retraining"]] == ["map", "map", "revisit", "revisit"]
     assert "retrained-revisit-k3" in [m["name"] for m in report["methods"]]
@@ -145,7 +152,7 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "--long-side",
         "256",
         "--limit",
-        "10",
+        "20",  # 10 references give 15 impostor pairs: too few to calibrate (20)
         "--extractors",
         "xfeat",
         "--alphas",
@@ -156,6 +163,8 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "1",
         "--retrain-protocols",
         "map",
+        "--retrain-param",
+        "positive_window=0",
     ]
     assert main(argv) == 0
     printed = capsys.readouterr().out
@@ -174,3 +183,5 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "retrained-map-k1",
         "seqslam-sad",
     ]
+    retrained = next(m for m in report["methods"] if m["name"] == "retrained-map-k1")
+    assert retrained["details"]["training_config"]["positive_window"] == 0  # --retrain-param

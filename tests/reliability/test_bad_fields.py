@@ -10,9 +10,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.fleet.keys import Role, create_key
+from service.ml.presets import PRESETS
 from service.storage.db import transaction
 from tests.api.helpers import create_atlas, stored_state
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
+
+FUSED_INPUT = sum(PRESETS["default"].signature.dims)  # an uncalibrated atlas's D + R
 
 DEEP = "[" * 100_000 + "]" * 100_000
 
@@ -80,8 +83,8 @@ def test_nul_characters_in_form_fields_are_422(client: TestClient) -> None:
 @pytest.mark.parametrize(
     ("params", "message"),
     [
-        ({"embed_dim": 1409}, "fused input size 1408"),
-        ({"embed_dim": 4096}, "fused input size 1408"),
+        ({"embed_dim": FUSED_INPUT + 1}, f"fused input size {FUSED_INPUT}"),
+        ({"embed_dim": 4096}, f"fused input size {FUSED_INPUT}"),
         ({"seed": 2**64}, "seed must be in"),
         ({"seed": 10**30}, "seed must be in"),
         ({"classification_weight": 0, "contrastive_weight": 0}, "loss weight must be positive"),

@@ -108,7 +108,7 @@ def disk_floor(rgb: np.ndarray, precision: Precision, repeats: int) -> dict[str,
     image = resize_long_side(to_tensor(rgb), 1024)
 
     def network() -> object:
-        return disk.model(image, n=2048, window_size=5, pad_if_not_divisible=True)  # type: ignore[attr-defined]
+        return disk.detect(image)  # type: ignore[attr-defined]
 
     dtype = torch.bfloat16 if precision == "bf16" else torch.float32
     result = floor_ratio(lambda: disk.extract(rgb), network, repeats, dtype)

@@ -8,6 +8,7 @@ the DISK weights (128-d descriptors only).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Protocol
@@ -75,27 +76,44 @@ class MutualNearestNeighbours:
         b: LocalFeatures,
         size_b: tuple[int, int],
     ) -> Matches:
-        if a.count == 0 or b.count == 0:
-            return Matches.empty()
-        if a.descriptors.shape[1] != b.descriptors.shape[1]:
-            raise ValueError(
-                f"descriptor sizes differ: {a.descriptors.shape[1]} vs {b.descriptors.shape[1]}"
-            )
+        return self.match_many(a, [b])[0]
+
+    def match_many(self, a: LocalFeatures, candidates: Sequence[LocalFeatures]) -> list[Matches]:
+        """``a`` matched with each candidate, from one product of ``a``'s descriptors with all
+        the candidates' stacked (one matrix product instead of one per candidate)."""
+        for b in candidates:
+            if b.count and a.count and a.descriptors.shape[1] != b.descriptors.shape[1]:
+                raise ValueError(
+                    f"descriptor sizes differ: {a.descriptors.shape[1]} vs {b.descriptors.shape[1]}"
+                )
+        found = [Matches.empty() for _ in candidates]
+        present = [i for i, b in enumerate(candidates) if b.count > 0]
+        if a.count == 0 or not present:
+            return found
         da = _unit(a.descriptors)
-        db = _unit(b.descriptors)
-        similarity = da @ db.T  # M x N
+        stacked = _unit(np.concatenate([candidates[i].descriptors for i in present]))
+        similarities = da @ stacked.T  # M x (all candidates' keypoints)
+        start = 0
+        for i in present:
+            end = start + candidates[i].count
+            found[i] = self._mutual(similarities[:, start:end])
+            start = end
+        return found
+
+    def _mutual(self, similarity: np.ndarray) -> Matches:
+        """Mutual nearest neighbours passing the ratio test in one ``M x N`` cosine matrix."""
         nearest_ab = similarity.argmax(axis=1)
         nearest_ba = similarity.argmax(axis=0)
-        rows = np.arange(len(da))
+        rows = np.arange(len(similarity))
         mutual = nearest_ba[nearest_ab] == rows
         best = similarity[rows, nearest_ab]
-        if b.count > 1:
+        if similarity.shape[1] > 1:
             second = np.partition(similarity, -2, axis=1)[:, -2]
             distance = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
             second_distance = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
             passes = distance < self.ratio * second_distance
         else:
-            passes = np.ones(len(da), bool)
+            passes = np.ones(len(similarity), bool)
         keep = mutual & passes
         pairs = np.stack([rows[keep], nearest_ab[keep]], axis=1).astype(np.int64)
         return Matches(pairs, best[keep].astype(np.float32))

@@ -8,6 +8,7 @@ the DISK weights (128-d descriptors only).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -91,32 +92,37 @@ class MutualNearestNeighbours:
         if a.count == 0 or not present:
             return found
         da = _unit(a.descriptors)
+        counts = [candidates[i].count for i in present]
         stacked = _unit(np.concatenate([candidates[i].descriptors for i in present]))
-        similarities = da @ stacked.T  # M x (all candidates' keypoints)
-        start = 0
-        for i in present:
-            end = start + candidates[i].count
-            found[i] = self._mutual(similarities[:, start:end])
-            start = end
-        return found
-
-    def _mutual(self, similarity: np.ndarray) -> Matches:
-        """Mutual nearest neighbours passing the ratio test in one ``M x N`` cosine matrix."""
-        nearest_ab = similarity.argmax(axis=1)
-        nearest_ba = similarity.argmax(axis=0)
-        rows = np.arange(len(similarity))
-        mutual = nearest_ba[nearest_ab] == rows
-        best = similarity[rows, nearest_ab]
-        if similarity.shape[1] > 1:
-            second = np.partition(similarity, -2, axis=1)[:, -2]
-            distance = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
-            second_distance = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
-            passes = distance < self.ratio * second_distance
+        # torch's product and column-wise argmax: about twice numpy's speed here.
+        product = torch.from_numpy(da) @ torch.from_numpy(stacked).T
+        similarity = product.numpy()  # M x (all candidates' keypoints)
+        nearest_ba = product.argmax(dim=0).numpy()  # per stacked column: the nearest row
+        # Each candidate's columns side by side in one M x K x Nmax block, so the row-wise
+        # best and second best of every candidate come from one pass each: a view when all
+        # candidates have as many keypoints (the usual case), else padded with -inf.
+        rows = np.arange(len(da))
+        starts = np.cumsum([0, *counts])
+        if len(set(counts)) == 1:
+            block = similarity.reshape(len(da), len(present), counts[0])
         else:
-            passes = np.ones(len(similarity), bool)
-        keep = mutual & passes
-        pairs = np.stack([rows[keep], nearest_ab[keep]], axis=1).astype(np.int64)
-        return Matches(pairs, best[keep].astype(np.float32))
+            block = np.full((len(da), len(present), max(counts)), -np.inf, np.float32)
+            for k, (start, end) in enumerate(itertools.pairwise(starts)):
+                block[:, k, : end - start] = similarity[:, start:end]
+        nearest_ab = block.argmax(axis=2)  # M x K, column within the candidate
+        best = np.take_along_axis(block, nearest_ab[..., None], axis=2)[..., 0]
+        np.put_along_axis(block, nearest_ab[..., None], -np.inf, axis=2)
+        second = block.max(axis=2)
+        distance = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+        second_distance = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+        single = np.array(counts) == 1  # no second neighbour: no ratio test
+        passes = (distance < self.ratio * second_distance) | single[None, :]
+        for k, i in enumerate(present):
+            mutual = nearest_ba[starts[k] + nearest_ab[:, k]] == rows
+            keep = mutual & passes[:, k]
+            pairs = np.stack([rows[keep], nearest_ab[keep, k]], axis=1).astype(np.int64)
+            found[i] = Matches(pairs, best[keep, k].astype(np.float32))
+        return found
 
 
 class LightGlueMatcher:

@@ -45,7 +45,8 @@ def test_policy_picks_the_finest_codes_that_fit_the_budget() -> None:
     assert policy.quantizer(1408) == "SQ6"  # 1056 + 8 bytes
     assert policy.quantizer(4096) == "SQ4"
     assert policy.flat_max(256) == 32768
-    assert ivf_nlist(1_000_000) == 4096 and ivf_nlist(100_000) == 1024
+    assert ivf_nlist(1_000_000) == 1024 and ivf_nlist(100_000) == 256
+    assert ivf_nlist(1_000_000, per_sqrt=4.0) == 4096
     assert ivf_nlist(1000) == 16  # never fewer than 39 training vectors per list ... or 16 lists
 
 
@@ -179,8 +180,8 @@ def test_bulk_load_rebuilds_once_at_its_final_size(monkeypatch: pytest.MonkeyPat
 
 
 def test_fewer_lists_per_square_root() -> None:
-    assert ivf_nlist(1_000_000, per_sqrt=1.0) == 1024
+    assert ivf_nlist(1_000_000, per_sqrt=0.5) == 512
     index, _ = filled(
-        3000, IndexPolicy(flat_max_bytes=100 * DIM * 4, lists_per_sqrt=1.0, background=False)
+        3000, IndexPolicy(flat_max_bytes=100 * DIM * 4, lists_per_sqrt=0.5, background=False)
     )
-    assert index.describe().startswith(f"IVF{ivf_nlist(3000, 1.0)},")
+    assert index.describe().startswith(f"IVF{ivf_nlist(3000, 0.5)},")

@@ -37,6 +37,7 @@ MIN_POINTS = 8
 # A pivot this small in the 7-point elimination (Hartley-normalised points are of order 1)
 # means a degenerate sample, solved by SVD instead.
 SINGULAR_PIVOT = 1e-9
+MAX_ROUND = 2048  # hypotheses a set per round at most
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ def fundamental_ransac_many(
     prepared = [_Prepared(a, b) if len(a) >= MIN_POINTS else None for a, b in sets]
     best = [_Best() for _ in sets]
     active = [i for i, p in enumerate(prepared) if p is not None]
-    count = config.round_size
+    count, drawn_each = config.round_size, 0
     while active:
         drawn = _seven_point([prepared[i] for i in active], rng, count)  # type: ignore[misc]
         for i, models in zip(active, drawn, strict=True):
@@ -89,8 +90,11 @@ def fundamental_ransac_many(
             assert p is not None
             _keep_best(best[i], p, models, t2, config.lo_models)
             best[i].drawn += count
+        drawn_each += count
         active = [i for i in active if not _done(best[i], prepared[i], config)]
-        count *= 2  # sets still drawing have a low inlier ratio: larger rounds, fewer of them
+        # Sets still drawing have a low inlier ratio: larger rounds, fewer of them, up to
+        # kornia's batch (memory: hypotheses x 3 models x matches) and within the budget.
+        count = min(2 * count, MAX_ROUND, config.max_hypotheses - drawn_each)
     out: list[tuple[np.ndarray, np.ndarray] | None] = []
     for p, b in zip(prepared, best, strict=True):
         if p is None or not b.pool:

@@ -1,4 +1,4 @@
-"""How close an extractor runs to this machine's fp32 compute floor.
+"""How close an extractor runs to this machine's compute floor (fp32, or bf16 with --precision).
 
 The floor of a network on an input is its FLOP count (counted by torch's ``FlopCounterMode``,
 2 FLOPs per multiply-add) divided by the machine's fp32 throughput, measured as a large square
@@ -8,6 +8,7 @@ share of the CPU other jobs take) and by CPU time (the process's own seconds on 
 which time-slicing with other jobs does not inflate: the implementation's efficiency).
 
     python benchmarks/compute_floor.py --image ../shared/data/gardenspoint_first10/query/0.jpg
+    python benchmarks/compute_floor.py --precision bf16 --threads 1   # the paper preset's DISK
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -101,15 +103,22 @@ FLOOR_HEADER = (
 )
 
 
-def disk_floor_rows(rgb: np.ndarray, long_side: int, max_keypoints: int, repeats: int) -> list[str]:
-    """Markdown rows: DISK at ``long_side`` on the frame and on a square frame of that side
-    (the 675 GFLOP case at 1024) against this machine's floor."""
+def disk_floor_rows(
+    rgb: np.ndarray,
+    long_side: int,
+    max_keypoints: int,
+    repeats: int,
+    precision: Literal["fp32", "bf16"] = "fp32",
+) -> list[str]:
+    """Markdown rows: DISK at ``long_side`` in ``precision`` on the frame and on a square frame
+    of that side (the 675 GFLOP case at 1024) against this machine's floor in that precision."""
     from service.ml.images import resize_long_side, to_tensor
     from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
 
     disk = build_local_extractor(
-        LocalExtractorConfig(long_side=long_side, max_keypoints=max_keypoints)
+        LocalExtractorConfig(long_side=long_side, max_keypoints=max_keypoints), precision
     )
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float32
     # The network's cost depends on the input size only: noise stands in for a square frame.
     rng = np.random.default_rng(0)
     square = (rng.random((long_side, long_side, 3)) * 255).astype(np.uint8)
@@ -118,17 +127,15 @@ def disk_floor_rows(rgb: np.ndarray, long_side: int, max_keypoints: int, repeats
         image = resize_long_side(to_tensor(frame), long_side)
 
         def network(image: torch.Tensor = image) -> object:
-            return disk.model(  # type: ignore[attr-defined]
-                image, n=max_keypoints, window_size=5, pad_if_not_divisible=True
-            )
+            return disk.detect(image)  # type: ignore[attr-defined]
 
         def extract(frame: np.ndarray = frame) -> object:
             return disk.extract(frame)
 
-        result = floor_ratio(extract, network, repeats)
+        result = floor_ratio(extract, network, repeats, dtype)
         height, width = image.shape[-2:]
         rows.append(
-            f"| DISK long side {long_side}, {label} {width}x{height} | {result.gflop:.0f} | "
+            f"| DISK {precision} long side {long_side}, {label} {width}x{height} | {result.gflop:.0f} | "
             f"{result.seconds * 1000:.0f} | {result.gflops_wall:.1f} | {result.ratio:.2f} | "
             f"{result.cpu_seconds * 1000:.0f} | {result.gflops_cpu:.1f} | "
             f"{result.cpu_ratio:.2f} |"
@@ -153,14 +160,19 @@ def main() -> None:
     parser.add_argument("--long-side", type=int, default=1024)
     parser.add_argument("--max-keypoints", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    parser.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     print(
         f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads, load average {os.getloadavg()[0]:.1f}\n"
     )
     print(FLOOR_HEADER)
     rgb = decode_image(args.image.read_bytes())
-    for row in disk_floor_rows(rgb, args.long_side, args.max_keypoints, args.repeats):
+    rows = disk_floor_rows(rgb, args.long_side, args.max_keypoints, args.repeats, args.precision)
+    for row in rows:
         print(row, flush=True)
 
 

@@ -34,7 +34,7 @@ import faiss
 import numpy as np
 from synthetic_embeddings import ClusteredEmbeddings
 
-from service.index import AtlasIndex, ivf_nlist
+from service.index import AtlasIndex, IndexPolicy, ivf_nlist
 
 K = 5
 
@@ -123,14 +123,16 @@ def build_index(kind: Kind, data: ClusteredEmbeddings) -> tuple[Any, float]:
     return index, elapsed
 
 
-def build_auto(data: ClusteredEmbeddings) -> tuple[AtlasIndex, float]:
-    """The service's ``AtlasIndex``, filled in chunks as a rebuild from the database does."""
-    index, elapsed = AtlasIndex(data.dim), 0.0
-    for ids, vectors in data.chunks():
-        start = time.perf_counter()
-        index.add(ids, vectors, ["r"] * len(ids))
-        elapsed += time.perf_counter() - start
+def build_auto(
+    data: ClusteredEmbeddings, policy: IndexPolicy | None = None
+) -> tuple[AtlasIndex, float]:
+    """The service's ``AtlasIndex``, filled in chunks inside ``bulk()`` as a rebuild from the
+    database does (one rebuild at the final size)."""
+    index, elapsed = AtlasIndex(data.dim, policy=policy), 0.0
     start = time.perf_counter()
+    with index.bulk():
+        for ids, vectors in data.chunks():
+            index.add(ids, vectors, ["r"] * len(ids))
     index.wait_rebuilt()
     return index, elapsed + time.perf_counter() - start
 
@@ -161,11 +163,15 @@ def score(found: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
 
 
 def bench_kind(
-    kind_name: str, data: ClusteredEmbeddings, queries: np.ndarray, exact: np.ndarray
+    kind_name: str,
+    data: ClusteredEmbeddings,
+    queries: np.ndarray,
+    exact: np.ndarray,
+    policy: IndexPolicy | None = None,
 ) -> list[Row]:
     rows = []
     if kind_name == "auto":
-        atlas_index, build_s = build_auto(data)
+        atlas_index, build_s = build_auto(data, policy)
         with tempfile.TemporaryDirectory() as tmp:
             atlas_index.save(Path(tmp) / "index.faiss")
             size = (Path(tmp) / "index.faiss").stat().st_size / data.n
@@ -233,6 +239,25 @@ def _format(row: Row) -> str:
     )
 
 
+def add_policy_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags for the inverted file's training (the service's ``IndexPolicy``, defaults
+    as there), for the benchmarks that build the service's own index."""
+    defaults = IndexPolicy()
+    parser.add_argument("--lists-per-sqrt", type=float, default=defaults.lists_per_sqrt)
+    parser.add_argument("--train-per-list", type=int, default=defaults.train_per_list)
+    parser.add_argument("--kmeans-iterations", type=int, default=defaults.kmeans_iterations)
+
+
+def policy_from(args: argparse.Namespace, **fixed: Any) -> IndexPolicy:
+    """The ``IndexPolicy`` of :func:`add_policy_arguments`' flags (and ``fixed`` fields)."""
+    return IndexPolicy(
+        lists_per_sqrt=args.lists_per_sqrt,
+        train_per_list=args.train_per_list,
+        kmeans_iterations=args.kmeans_iterations,
+        **fixed,
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -255,13 +280,15 @@ def main() -> None:
         help="HNSW builds slowly on 2 cores; skip it above this size",
     )
     parser.add_argument("--json", type=Path, help="append the rows to this JSON-lines file")
+    add_policy_arguments(parser)
     args = parser.parse_args()
+    policy = policy_from(args)
 
     faiss.omp_set_num_threads(args.threads)
     print(
         f"machine: {platform.machine()}, {os.cpu_count()} cores, faiss {faiss.__version__}, "
         f"{args.threads} FAISS thread(s), load average {os.getloadavg()[0]:.1f}, "
-        f"{args.queries} queries, k={K}"
+        f"{args.queries} queries, k={K}; auto: {policy}"
     )
     print(
         "| dim | frames | index | recall@1 | recall@5 | p50 ms | p95 ms | bytes/frame | build s |"
@@ -279,7 +306,7 @@ def main() -> None:
                 if kind == "hnsw-sq8" and n > args.hnsw_max_frames:
                     print(f"| {dim} | {n:,} | hnsw skipped: over --hnsw-max-frames |")
                     continue
-                rows = bench_kind(kind, data, queries, exact)
+                rows = bench_kind(kind, data, queries, exact, policy)
                 if kind == "auto":
                     print(_format(rows[0]), flush=True)
                 if args.json:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 from compute_floor import floor_ratio
+from index_search import add_policy_arguments, policy_from
 
 from service.ml.backbones import BackboneConfig, build_backbone
 from service.ml.backbones.registry import backbone_spec, pretrained_trunk
@@ -108,7 +109,7 @@ def disk_floor(rgb: np.ndarray, precision: Precision, repeats: int) -> dict[str,
     image = resize_long_side(to_tensor(rgb), 1024)
 
     def network() -> object:
-        return disk.model(image, n=2048, window_size=5, pad_if_not_divisible=True)  # type: ignore[attr-defined]
+        return disk.detect(image)  # type: ignore[attr-defined]
 
     dtype = torch.bfloat16 if precision == "bf16" else torch.float32
     result = floor_ratio(lambda: disk.extract(rgb), network, repeats, dtype)
@@ -157,9 +158,12 @@ def preset_section(frames: list[np.ndarray], precision: Precision, repeats: int)
     return rows
 
 
-def reembedding(frames: int, with_index: bool, embed_dim: int) -> dict[str, Any]:
+def reembedding(
+    frames: int, with_index: bool, embed_dim: int, policy: Any = None
+) -> dict[str, Any]:
     """Re-embedding ``frames`` stored frames in 100k chunks, fp32 against bf16 matrix work;
-    then, optionally, the size-chosen index built from the bf16 embeddings."""
+    then, optionally, the size-chosen index (``policy``) built from the bf16 embeddings in one
+    bulk load, as ``add_stored_frames`` builds it."""
     from service.index import AtlasIndex, IndexPolicy
     from service.ml.heads import HeadsConfig, LoopNetHeads
     from service.ml.pipeline import embed_vectors
@@ -189,11 +193,15 @@ def reembedding(frames: int, with_index: bool, embed_dim: int) -> dict[str, Any]
     out["bf16_cosine_min"] = float(cosine.min())
     out["bf16_cosine_mean"] = float(cosine.mean())
     if with_index:
-        index = AtlasIndex(embedded["bf16"].shape[1], policy=IndexPolicy(background=False))
+        index = AtlasIndex(
+            embedded["bf16"].shape[1], policy=policy or IndexPolicy(background=False)
+        )
         start, start_cpu = time.perf_counter(), time.process_time()
-        for offset in range(0, frames, chunk):
-            ids = np.arange(offset, offset + chunk)
-            index.add(ids, embedded["bf16"], ["r"] * chunk)
+        with index.bulk():
+            for offset in range(0, frames, chunk):
+                ids = np.arange(offset, offset + chunk)
+                index.add(ids, embedded["bf16"], ["r"] * chunk)
+        index.wait_rebuilt()
         out["index"] = {
             "wall_s": time.perf_counter() - start,
             "cpu_s": time.process_time() - start_cpu,
@@ -266,6 +274,7 @@ def main() -> None:
     parser.add_argument("--embed-dim", type=int, default=256, help="a retrained model's")
     parser.add_argument("--no-index", action="store_true", help="skip the index build")
     parser.add_argument("--only", default="local,floor,backbones,presets,reembedding")
+    add_policy_arguments(parser)
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -291,7 +300,12 @@ def main() -> None:
         "floor": lambda: disk_floor(rgb, precision, max(1, args.repeats // 2)),
         "backbones": lambda: backbone_section(rgb, precision, args.repeats * 4),
         "presets": lambda: preset_section(frames, precision, args.repeats),
-        "reembedding": lambda: reembedding(args.reembed_frames, not args.no_index, args.embed_dim),
+        "reembedding": lambda: reembedding(
+            args.reembed_frames,
+            not args.no_index,
+            args.embed_dim,
+            policy_from(args, background=False),
+        ),
     }
     keys = {"floor": "disk1024_floor"}
     for name, run in sections.items():

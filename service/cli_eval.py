@@ -198,7 +198,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 2
     from service.ml.weights import set_offline
 
-    set_offline(Settings().offline)
+    settings = Settings()
+    set_offline(settings.offline)
     config = EvalConfig(
         dataset=args.dataset,
         output=args.out,
@@ -223,6 +224,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         retrain_params=_named_values(args.retrain_param),
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
+        ransac_backend=settings.ransac_backend,
         query_stride=args.query_stride,
         sequence=_csv_list(int, args.sequence),
         sequence_contrast=args.sequence_contrast,

@@ -71,6 +71,12 @@ class Settings(BaseSettings):
     ransac_threshold_px: float = Field(
         3.0, gt=0.0, description="RANSAC inlier threshold (pixels of the decoded image)."
     )
+    ransac_backend: Literal["batched", "kornia"] = Field(
+        "batched",
+        description="Fundamental-matrix RANSAC of verification: 'batched' (all candidates "
+        "vectorised together in numpy, several times faster) or 'kornia' (kornia's RANSAC, one "
+        "candidate at a time; inlier counts agree within a few). Essential matrices use kornia.",
+    )
     exclude_recent_frames: int = Field(
         20, ge=0, description="The asking robot's last N frames never count as a loop closure."
     )

@@ -26,7 +26,9 @@ def verification_config(settings: Settings, local_extractor: str) -> Verificatio
         top=settings.verify_top,
         min_inliers=settings.verify_min_inliers or default_min_inliers(matcher),
         ratio=settings.verify_ratio,
-        ransac=RansacConfig(threshold_px=settings.ransac_threshold_px),
+        ransac=RansacConfig(
+            threshold_px=settings.ransac_threshold_px, backend=settings.ransac_backend
+        ),
     )
 
 
@@ -55,14 +57,12 @@ class CandidateVerification:
         """Verify the query against stored frames (``stored``: their keypoints by frame id;
         a frame missing there was deleted meanwhile and is skipped)."""
         verifier = self.verifier
-        found = {}
+        present = [frame for frame in frames if frame.id in stored]
         with self.inference.slot():
-            for frame in frames:
-                local = stored.get(frame.id)
-                if local is None:
-                    continue
-                found[frame.id] = verifier.verify(query, frame_view(frame, local))
-        return found
+            found = verifier.verify_many(
+                query, [frame_view(frame, stored[frame.id]) for frame in present]
+            )
+        return {frame.id: v for frame, v in zip(present, found, strict=True)}
 
     def verify_pair(self, query: View, candidate: View) -> Verification:
         """One pair, keeping which matches were inliers (to draw them)."""

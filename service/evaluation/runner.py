@@ -100,6 +100,8 @@ class EvalConfig:
         verify: matchers ("mnn", "lightglue") whose geometric verification of the first
             extractor's ranking adds a row each; empty: none.
         verify_top: candidates verified per query.
+        ransac_backend: the verification rows' fundamental-matrix RANSAC ("batched",
+            "kornia"; the service's ``LOOPNET_RANSAC_BACKEND``).
         query_stride: keep every n-th query only (bounded runs on long datasets).
         sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
         sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
@@ -134,6 +136,7 @@ class EvalConfig:
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5
+    ransac_backend: str = "batched"
     query_stride: int = 1
     sequence: tuple[int, ...] = ()
     sequence_contrast: int = 0
@@ -564,6 +567,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             first_pass.query_ms,
             matchers=config.verify,
             top=config.verify_top,
+            ransac_backend=config.ransac_backend,
             cache=first_keypoints,
             similarity_threshold=first_pass.threshold,
             extractor_label=EXTRACTOR_LABELS.get(extractor_name, extractor_name),

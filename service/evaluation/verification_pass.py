@@ -31,6 +31,7 @@ from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractor
+from service.ml.two_view import RansacConfig
 from service.ml.verification import (
     VerificationConfig,
     Verifier,
@@ -262,13 +263,17 @@ def verification_methods(
     cache: KeypointCache,
     similarity_threshold: float,
     extractor_label: str,
+    ransac_backend: str = "batched",
 ) -> tuple[list[MethodResult], dict[str, dict[str, dict[str, float]]]]:
     """One verified row per matcher on the same retrieval ranking, and the stage timings."""
     methods: list[MethodResult] = []
     stages: dict[str, dict[str, dict[str, float]]] = {}
     for matcher in matchers:
         config = VerificationConfig(
-            matcher=matcher, top=top, min_inliers=default_min_inliers(matcher)
+            matcher=matcher,
+            top=top,
+            min_inliers=default_min_inliers(matcher),
+            ransac=RansacConfig(backend=ransac_backend),
         )
         verified = verify_ranking(
             dataset, base, cache, config, label=f"verify {matcher}: {dataset.name}"

@@ -17,9 +17,11 @@ lists hold too few of them).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,10 +35,10 @@ log = logging.getLogger(__name__)
 MIN_PER_LIST = 39  # k-means needs about this many training vectors per list (faiss warns below)
 
 
-def ivf_nlist(n: int) -> int:
-    """Inverted lists for ``n`` vectors: the power of two nearest ``4 sqrt(n)``, with at least
-    ``MIN_PER_LIST`` vectors per list (and at least 16 lists)."""
-    nearest = 2 ** round(np.log2(4 * np.sqrt(max(n, 1))))
+def ivf_nlist(n: int, per_sqrt: float = 1.0) -> int:
+    """Inverted lists for ``n`` vectors: the power of two nearest ``per_sqrt * sqrt(n)``, with
+    at least ``MIN_PER_LIST`` vectors per list (and at least 16 lists)."""
+    nearest = 2 ** round(np.log2(per_sqrt * np.sqrt(max(n, 1))))
     most = 2 ** int(np.log2(max(n // MIN_PER_LIST, 1)))
     return int(max(16, min(nearest, most)))
 
@@ -54,7 +56,13 @@ class IndexPolicy:
             gives float16 codes at 256-d (520 B; 8-bit codes lose near ties there) and 8-bit
             codes at 1408-d (1416 B; 6-bit codes fit but lose recall, see benchmarks/RESULTS.md).
         nprobe: inverted lists visited per query.
-        train_per_list: training vectors per list (k-means sample, taken in id order).
+        lists_per_sqrt: inverted lists per square root of the size (:func:`ivf_nlist`). Fewer
+            lists train and assign faster (a rebuild's cost is size x lists) and scan more
+            per probe: at 1M frames (256-d, synthetic) 1 (IVF1024) built in 72 s against 346 s
+            for 4 (IVF4096) with recall@1 1.000 for both, p50 1.06 against 0.42 ms
+            (benchmarks/RESULTS.md, *Re-embedding + index rebuild at 1M*).
+        train_per_list: training vectors per list (k-means sample, taken in id order; faiss
+            warns below 39).
         kmeans_iterations: k-means iterations when (re)training.
         background: train and fill a new index in a thread while the old one serves (the
             service); off, the add that crosses a threshold waits for it.
@@ -63,7 +71,8 @@ class IndexPolicy:
     flat_max_bytes: int = 32 << 20
     bytes_per_frame: int = 1500
     nprobe: int = 32
-    train_per_list: int = 64
+    lists_per_sqrt: float = 1.0
+    train_per_list: int = MIN_PER_LIST + 1
     kmeans_iterations: int = 10
     background: bool = True
 
@@ -102,6 +111,7 @@ class AtlasIndex:
         # While a rebuild runs: the adds and removals to replay on the new index.
         self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
         self._rebuilder: threading.Thread | None = None
+        self._bulk = 0  # open bulk() blocks: rebuilds wait until the last one closes
         # Every add and removal, numbered: caches of the held vectors follow them cheaply.
         self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
         self._journal_start = 0  # generation of the journal's first entry
@@ -301,11 +311,29 @@ class AtlasIndex:
         self._index.add_with_ids(vectors, ids)
         if self._log is not None:
             self._log.append(("add", ids, vectors))
-        else:
+        elif not self._bulk:
             self._regrow_if_due()
 
+    @contextlib.contextmanager
+    def bulk(self) -> Iterator[None]:
+        """Adds inside go into the current index without rebuilding it; leaving the block
+        rebuilds once, to the type the final size calls for. A bulk load (re-embedding an
+        atlas) then trains k-means and assigns its vectors once, at the final size, instead of
+        at every size threshold it passes (3 rebuilds of all vectors on the way to 1M)."""
+        with self._lock:
+            self._bulk += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._bulk -= 1
+                if not self._bulk and self._log is None:
+                    self._regrow_if_due()
+
     def _wanted_nlist(self, size: int) -> int | None:
-        return None if size <= self.policy.flat_max(self.dim) else ivf_nlist(size)
+        if size <= self.policy.flat_max(self.dim):
+            return None
+        return ivf_nlist(size, self.policy.lists_per_sqrt)
 
     def _start_rebuild(self, size: int) -> None:
         """Snapshot the held vectors (under the lock), then train and fill the new index.
@@ -367,7 +395,7 @@ class AtlasIndex:
         return _flat(self.dim)
 
     def _ivf_like(self, size: int) -> Any:
-        nlist = ivf_nlist(size)
+        nlist = ivf_nlist(size, self.policy.lists_per_sqrt)
         name = f"IVF{nlist},{self.policy.quantizer(self.dim)}"
         index = faiss.index_factory(self.dim, name, faiss.METRIC_INNER_PRODUCT)
         faiss.extract_index_ivf(index).cp.niter = self.policy.kmeans_iterations

@@ -72,10 +72,11 @@ def add_stored_frames(
     """
     resolved = resolve_precision(precision)
     added = 0
-    for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=frame_ids):
-        embeddings = embed_vectors(model.heads, batch.local, batch.global_, resolved)
-        added += index.add(batch.ids, embeddings, batch.robots)
-        if progress is not None:
-            progress(added)
+    with index.bulk():  # one rebuild at the final size, not one per threshold passed
+        for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=frame_ids):
+            embeddings = embed_vectors(model.heads, batch.local, batch.global_, resolved)
+            added += index.add(batch.ids, embeddings, batch.robots)
+            if progress is not None:
+                progress(added)
     index.wait_rebuilt()  # a bulk build ends with the index type its size calls for
     return added

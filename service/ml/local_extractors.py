@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -57,6 +57,15 @@ def to_decoded_pixels(
     return ((keypoints.astype(np.float64) + 0.5) * scale - 0.5).astype(np.float32)
 
 
+class DiskKeypoints(NamedTuple):
+    """One frame's DISK keypoints (integer x, y of the working image), their L2-normalised
+    descriptors and detection scores, all float32."""
+
+    keypoints: torch.Tensor
+    descriptors: torch.Tensor
+    scores: torch.Tensor
+
+
 class DiskExtractor:
     """DISK (kornia, pretrained ``depth`` weights) at a configurable long side."""
 
@@ -78,27 +87,48 @@ class DiskExtractor:
     @torch.inference_mode()
     def extract_batch(self, rgbs: list[np.ndarray]) -> list[LocalFeatures]:
         """Frames resized to the same working size run through the network as one batch."""
-        return extract_grouped(rgbs, self.config.long_side, self._run, self._to_local)
+        return extract_grouped(rgbs, self.config.long_side, self.detect, self._to_local)
 
-    def _run(self, images: torch.Tensor) -> list[Any]:
-        return self.model(  # type: ignore[no-any-return]
-            images,
-            n=self.config.max_keypoints,
-            window_size=self.config.nms_window,
-            pad_if_not_divisible=True,
-        )
+    def detect(self, images: torch.Tensor) -> list[DiskKeypoints]:
+        """kornia's ``DISK.forward(images, n, window_size, pad_if_not_divisible=True)``, reading
+        the network's output where it lies: in bf16 the dense maps stay bf16 and channels-last,
+        and only the heatmap and the descriptors at the keypoints become float32 (converting the
+        whole 129-channel map cost as much as the network's normalisations)."""
+        from kornia.feature.disk.detector import heatmap_to_keypoints
 
-    def _to_local(self, found: Any, image: torch.Tensor, rgb: np.ndarray) -> LocalFeatures:
+        height, width = images.shape[-2:]
+        padded = torch.nn.functional.pad(images, (0, -width % 16, 0, -height % 16), value=0.0)
+        heatmaps, dense = self.model.heatmap_and_dense_descriptors(padded)
+        heatmaps = heatmaps[..., :height, :width].float()
+        found = []
+        for i, keypoints in enumerate(
+            heatmap_to_keypoints(
+                heatmaps, n=self.config.max_keypoints, window_size=self.config.nms_window
+            )
+        ):
+            x, y = keypoints.xys.T
+            descriptors = dense[i, :, y, x].T.float()
+            found.append(
+                DiskKeypoints(
+                    keypoints.xys.float(),
+                    torch.nn.functional.normalize(descriptors, dim=-1),
+                    keypoints.detection_logp,
+                )
+            )
+        return found
+
+    def _to_local(
+        self, found: DiskKeypoints, image: torch.Tensor, rgb: np.ndarray
+    ) -> LocalFeatures:
         if len(found.keypoints) == 0:
             return LocalFeatures.empty(self.descriptor_dim)
         working = (image.shape[-1], image.shape[-2])
-        descriptors = torch.nn.functional.normalize(found.descriptors, dim=-1).numpy()
         return LocalFeatures(
             keypoints=to_decoded_pixels(
                 found.keypoints.numpy(), working, (rgb.shape[1], rgb.shape[0])
             ),
-            descriptors=descriptors.astype(np.float32),
-            scores=found.detection_scores.numpy().astype(np.float32),
+            descriptors=found.descriptors.numpy().astype(np.float32),
+            scores=found.scores.numpy().astype(np.float32),
         )
 
 

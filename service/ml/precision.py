@@ -1,10 +1,12 @@
 """Reduced-precision CPU inference: bf16 through oneDNN where the CPU has it, fp32 elsewhere.
 
-A network is wrapped, never rewritten: :class:`FastInference` runs it on channels-last input
-under ``torch.autocast(bfloat16)`` (oneDNN's bf16 convolutions and matrix products) and hands
-back float32 outputs, so everything after the network (keypoint selection, pooling,
-normalisation) keeps working in fp32. Convolution + batch-norm pairs are folded first where a
-network has them. Which of these each model gets is :data:`MODEL_POLICIES`, chosen by
+A network keeps its architecture: in bf16 its weights are converted once (:func:`to_bf16`) so
+activations stay bf16 and channels-last from input to output (oneDNN's bf16 convolutions),
+with the normalisations computing their statistics in float32 on the bf16 activations.
+:class:`FastInference` converts the input and, for most models, hands back float32 outputs,
+so everything after the network (keypoint selection, pooling, normalisation) works in fp32;
+DISK takes its bf16 output and converts only what it reads. Convolution + batch-norm pairs are
+folded first where a network has them. Which of these each model gets is :data:`MODEL_POLICIES`, chosen by
 measurement (benchmarks/inference_speed.py); the accuracy guard is tests/ml/test_precision.py.
 
 Nothing here reads the environment: the service passes its ``precision`` setting in.
@@ -12,14 +14,13 @@ Nothing here reads the environment: the service passes its ``precision`` setting
 
 from __future__ import annotations
 
-import contextlib
 import functools
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 Precision = Literal["fp32", "bf16"]
@@ -37,18 +38,21 @@ class ModelPolicy:
         channels_last: NHWC input and weights (oneDNN's native layout; measured faster for all
             of our CNNs even in fp32).
         fold_batchnorm: fold eval-mode BatchNorm into the preceding convolution (torch.fx).
+        float_outputs: hand back contiguous float32 outputs (False: the network's own dtype
+            and layout, for a caller that converts only what it reads).
     """
 
     bf16: bool = True
     channels_last: bool = True
     fold_batchnorm: bool = False
+    float_outputs: bool = True
 
 
-# DISK: bf16 several times faster. XFeat and MobileNetV2 one frame at a time: bf16 measured no
+# DISK: bf16 about twice as fast (the CPU's bf16 dot products), its dense output read in place. XFeat and MobileNetV2 one frame at a time: bf16 measured no
 # faster, and MobileNetV2's bf16 vectors moved a harness's R@1 beyond the guard. ResNet-18 is
 # unmeasured (no weights on the development machine): fp32.
 MODEL_POLICIES: dict[str, ModelPolicy] = {
-    "disk": ModelPolicy(),
+    "disk": ModelPolicy(float_outputs=False),
     "xfeat": ModelPolicy(bf16=False, channels_last=False),
     "mobilenetv2": ModelPolicy(bf16=False, fold_batchnorm=True),
     "resnet18": ModelPolicy(bf16=False, fold_batchnorm=True),
@@ -93,16 +97,6 @@ def resolve_precision(requested: str) -> Precision:
     return "bf16" if requested == "bf16" else "fp32"
 
 
-@contextlib.contextmanager
-def autocast(precision: Precision) -> Iterator[None]:
-    """bf16 autocast on the CPU when ``precision`` is bf16; nothing otherwise."""
-    if precision == "bf16":
-        with torch.autocast("cpu", dtype=torch.bfloat16):
-            yield
-    else:
-        yield
-
-
 def _to_float32(output: Any) -> Any:
     if isinstance(output, torch.Tensor):
         return output.float().contiguous() if output.is_floating_point() else output
@@ -115,48 +109,100 @@ def _to_float32(output: Any) -> Any:
     return output
 
 
-# Normalisations that compute statistics of the activations lose most accuracy in bf16
-# (DISK's InstanceNorms: dense descriptor cosine 0.983 -> 0.994 on day frames); they run in fp32.
-FP32_LAYERS: tuple[type[nn.Module], ...] = (nn.InstanceNorm2d, nn.GroupNorm, nn.LayerNorm)
+class Bf16InstanceNorm(nn.Module):
+    """InstanceNorm2d (no affine, no running stats) for bf16 activations, layout kept.
 
+    Statistics are computed in float32 and the normalised values rounded to bf16 once:
+    ``batch_norm`` in training mode over one frame is its instance norm, and given float32
+    weight and bias ATen runs it "mixed type" (float32 statistics and arithmetic on
+    bf16 input and output). ``nn.InstanceNorm2d`` in bf16 instead rounds its mean to bf16 (a
+    bias of every output, 0.01 of DISK's dense descriptor cosine) and first copies a
+    channels-last input to NCHW.
+    """
 
-class Float32Island(nn.Module):
-    """Runs ``inner`` in float32 inside a bf16 autocast region."""
+    ones: torch.Tensor
+    zeros: torch.Tensor
 
-    def __init__(self, inner: nn.Module) -> None:
+    def __init__(self, num_features: int, eps: float) -> None:
         super().__init__()
-        self.inner = inner
+        self.eps = eps
+        self.register_buffer("ones", torch.ones(num_features))
+        self.register_buffer("zeros", torch.zeros(num_features))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        with torch.autocast("cpu", enabled=False):
-            out: torch.Tensor = self.inner(x.float())
-            return out
+        frames = [
+            F.batch_norm(x[i : i + 1], None, None, self.ones, self.zeros, True, 0.0, self.eps)
+            for i in range(x.shape[0])
+        ]
+        return frames[0] if len(frames) == 1 else torch.cat(frames)
+
+    @classmethod
+    def replacing(cls, norm: nn.InstanceNorm2d) -> Bf16InstanceNorm:
+        """The bf16 equivalent of ``norm``, which must be a plain (non-affine) InstanceNorm2d."""
+        if norm.affine or norm.track_running_stats:
+            raise ValueError("only InstanceNorm2d without affine parameters or running stats")
+        return cls(norm.num_features, norm.eps)
 
 
-def keep_normalisations_in_fp32(module: nn.Module) -> nn.Module:
-    """Wrap every :data:`FP32_LAYERS` sub-module of ``module`` (in place) in a Float32Island."""
+# Normalisations whose parameters and buffers stay float32 in a bf16 network: ATen runs them
+# mixed type (float32 statistics on bf16 activations).
+MIXED_TYPE_NORMS: tuple[type[nn.Module], ...] = (
+    Bf16InstanceNorm,
+    nn.BatchNorm2d,
+    nn.GroupNorm,
+    nn.LayerNorm,
+)
+
+
+def to_bf16(module: nn.Module) -> nn.Module:
+    """``module`` (in place) with bf16 weights and float32 normalisation statistics.
+
+    Every InstanceNorm2d becomes a :class:`Bf16InstanceNorm`; the parameters and buffers of
+    :data:`MIXED_TYPE_NORMS` stay float32, everything else becomes bf16, so activations stay
+    bf16 from input to output with no conversion in between.
+    """
     for name, child in module.named_children():
-        if isinstance(child, FP32_LAYERS):
-            setattr(module, name, Float32Island(child))
-        else:
-            keep_normalisations_in_fp32(child)
+        if isinstance(child, nn.InstanceNorm2d):
+            setattr(module, name, Bf16InstanceNorm.replacing(child))
+        elif not isinstance(child, MIXED_TYPE_NORMS):
+            to_bf16(child)
+    for parameter in module.parameters(recurse=False):
+        parameter.data = parameter.data.to(torch.bfloat16)
+    for name, buffer in module.named_buffers(recurse=False):
+        if buffer.is_floating_point():
+            setattr(module, name, buffer.to(torch.bfloat16))
     return module
 
 
 class FastInference(nn.Module):
-    """Runs ``inner`` in the given precision and layout; outputs are contiguous float32."""
+    """Runs ``inner`` in the given precision and layout.
 
-    def __init__(self, inner: nn.Module, precision: Precision, channels_last: bool) -> None:
+    Outputs are contiguous float32 when ``float_outputs``; otherwise they come back in the
+    network's own dtype and layout (bf16, channels-last), for a caller that converts only the
+    part it reads.
+    """
+
+    def __init__(
+        self,
+        inner: nn.Module,
+        precision: Precision,
+        channels_last: bool,
+        float_outputs: bool = True,
+    ) -> None:
         super().__init__()
         self.inner = inner
         self.precision: Precision = precision
         self.channels_last = channels_last
+        self.float_outputs = float_outputs
 
     def forward(self, x: torch.Tensor) -> Any:
+        dtype = torch.bfloat16 if self.precision == "bf16" else x.dtype
         if self.channels_last and x.dim() == 4:
-            x = x.contiguous(memory_format=torch.channels_last)
-        with autocast(self.precision):
-            return _to_float32(self.inner(x))
+            x = x.to(dtype=dtype, memory_format=torch.channels_last)
+        else:
+            x = x.to(dtype)
+        out = self.inner(x)
+        return _to_float32(out) if self.float_outputs else out
 
     def __getattr__(self, name: str) -> Any:
         # Sub-modules the caller reaches into (XFeat's fine matcher) stay reachable.
@@ -193,5 +239,5 @@ def optimise(module: nn.Module, model_name: str, precision: Precision) -> nn.Mod
         module = module.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     effective: Precision = precision if policy.bf16 else "fp32"
     if effective == "bf16":
-        module = keep_normalisations_in_fp32(module)
-    return FastInference(module, effective, policy.channels_last).eval()
+        module = to_bf16(module)
+    return FastInference(module, effective, policy.channels_last, policy.float_outputs).eval()

@@ -10,10 +10,13 @@ input gives the same answer.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from service.ml.batched_ransac import BatchedRansacConfig, fundamental_ransac_many
 
 # Fewer correspondences than this make every estimate meaningless (7-point F needs 7 plus one
 # to check); below it the answer is "no model, no inliers".
@@ -30,12 +33,24 @@ class RansacConfig:
         confidence: early-stopping confidence.
         max_iter: batches of hypotheses at most (kornia's ``auto`` batch size, 2048 each).
         seed: the private generator's seed (results are reproducible, global RNG untouched).
+        backend: who fits fundamental matrices: "batched" (service.ml.batched_ransac: every
+            candidate's hypotheses vectorised together, several times faster) or "kornia"
+            (kornia's RANSAC, one pair at a time). Essential matrices and homographies always
+            use kornia.
     """
 
     threshold_px: float = 3.0
     confidence: float = 0.999
     max_iter: int = 5
     seed: int = 0
+    backend: str = "batched"
+
+    def __post_init__(self) -> None:
+        if self.backend not in RANSAC_BACKENDS:
+            raise ValueError(f"unknown RANSAC backend {self.backend!r}; choose {RANSAC_BACKENDS}")
+
+
+RANSAC_BACKENDS = ("batched", "kornia")
 
 
 @dataclass(frozen=True)
@@ -112,21 +127,55 @@ def estimate_two_view(
     and the relative pose chosen by cheirality; otherwise a fundamental matrix (7-point
     RANSAC) and no pose.
     """
-    config = config or RansacConfig()
-    count = len(a)
-    if count < MIN_CORRESPONDENCES:
-        return _none(count)
-    if k_a is None or k_b is None:
-        found = _run("fundamental", a, b, config.threshold_px, config)
-        if found is None:
-            return _none(count)
-        return TwoViewGeometry("fundamental", found[0], found[1])
+    return estimate_two_view_many([(a, b, k_a, k_b)], config)[0]
 
+
+def estimate_two_view_many(
+    pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
+    config: RansacConfig | None = None,
+) -> list[TwoViewGeometry]:
+    """:func:`estimate_two_view` of each ``(a, b, k_a, k_b)``; with the batched backend the
+    fundamental matrices of all pairs are fitted together."""
+    config = config or RansacConfig()
+    out: list[TwoViewGeometry | None] = [None] * len(pairs)
+    fundamental: list[int] = []
+    for i, (a, b, k_a, k_b) in enumerate(pairs):
+        if len(a) < MIN_CORRESPONDENCES:
+            out[i] = _none(len(a))
+        elif k_a is None or k_b is None:
+            fundamental.append(i)
+        else:
+            out[i] = _essential(a, b, k_a, k_b, config)
+    if config.backend == "batched":
+        found = fundamental_ransac_many(
+            [(pairs[i][0], pairs[i][1]) for i in fundamental],
+            BatchedRansacConfig(
+                threshold_px=config.threshold_px, confidence=config.confidence, seed=config.seed
+            ),
+        )
+    else:
+        found = [
+            _run("fundamental", pairs[i][0], pairs[i][1], config.threshold_px, config)
+            for i in fundamental
+        ]
+    for i, result in zip(fundamental, found, strict=True):
+        out[i] = (
+            _none(len(pairs[i][0]))
+            if result is None
+            else TwoViewGeometry("fundamental", result[0], result[1])
+        )
+    return [g for g in out if g is not None]
+
+
+def _essential(
+    a: np.ndarray, b: np.ndarray, k_a: np.ndarray, k_b: np.ndarray, config: RansacConfig
+) -> TwoViewGeometry:
+    """Essential matrix (kornia's 5-point RANSAC) and the pose that passes cheirality."""
     na, nb = _calibrate(a, k_a), _calibrate(b, k_b)
     focal = float(np.mean([k_a[0, 0], k_a[1, 1], k_b[0, 0], k_b[1, 1]]))
     found = _run("essential", na, nb, config.threshold_px / focal, config)
     if found is None:
-        return _none(count)
+        return _none(len(a))
     essential, mask = found
     rotation, translation, in_front = _pose_from_essential(essential, na, nb, mask)
     return TwoViewGeometry("essential", essential, mask, rotation, translation, in_front)

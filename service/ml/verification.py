@@ -17,11 +17,12 @@ import numpy as np
 
 from service.ml.features import LocalFeatures
 from service.ml.geometry import Intrinsics
-from service.ml.matching import Matcher, build_matcher
+from service.ml.matching import Matcher, Matches, MutualNearestNeighbours, build_matcher
 from service.ml.two_view import (
     RansacConfig,
+    TwoViewGeometry,
     camera_matrix,
-    estimate_two_view,
+    estimate_two_view_many,
     rotation_to_quaternion,
 )
 
@@ -109,15 +110,44 @@ class Verifier:
     def verify(self, query: View, candidate: View, *, keep_inliers: bool = False) -> Verification:
         """Match, fit and count; ``keep_inliers`` also returns which matches were inliers
         (for drawing them), which the search path never asks for."""
+        return self.verify_many(query, [candidate], keep_inliers=keep_inliers)[0]
+
+    def verify_many(
+        self, query: View, candidates: Sequence[View], *, keep_inliers: bool = False
+    ) -> list[Verification]:
+        """:meth:`verify` of each candidate, batched: MNN matches all of them from one matrix
+        product and the batched RANSAC fits their fundamental matrices together. ``ms`` is
+        each candidate's share of the whole."""
         start = time.perf_counter()
-        matches = self.matcher.match(
-            query.local, query.image_size, candidate.local, candidate.image_size
+        if isinstance(self.matcher, MutualNearestNeighbours):
+            found = self.matcher.match_many(query.local, [c.local for c in candidates])
+        else:
+            found = [
+                self.matcher.match(query.local, query.image_size, c.local, c.image_size)
+                for c in candidates
+            ]
+        k_query = _camera(query.intrinsics)
+        geometries = estimate_two_view_many(
+            [
+                (
+                    query.local.keypoints[matches.pairs[:, 0]],
+                    c.local.keypoints[matches.pairs[:, 1]],
+                    k_query,
+                    _camera(c.intrinsics),
+                )
+                for matches, c in zip(found, candidates, strict=True)
+            ],
+            self.config.ransac,
         )
-        a = query.local.keypoints[matches.pairs[:, 0]]
-        b = candidate.local.keypoints[matches.pairs[:, 1]]
-        k_a = _camera(query.intrinsics)
-        k_b = _camera(candidate.intrinsics)
-        geometry = estimate_two_view(a, b, k_a, k_b, self.config.ransac)
+        ms = (time.perf_counter() - start) * 1000.0 / max(1, len(candidates))
+        return [
+            self._outcome(matches, geometry, ms, keep_inliers)
+            for matches, geometry in zip(found, geometries, strict=True)
+        ]
+
+    def _outcome(
+        self, matches: Matches, geometry: TwoViewGeometry, ms: float, keep_inliers: bool
+    ) -> Verification:
         pose = None
         if geometry.rotation is not None and geometry.translation is not None:
             tx, ty, tz = (float(v) for v in geometry.translation)
@@ -130,7 +160,7 @@ class Verifier:
             verified=inliers >= self.config.min_inliers,
             model=geometry.model,
             relative_pose=pose,
-            ms=(time.perf_counter() - start) * 1000.0,
+            ms=ms,
             inlier_pairs=matches.pairs[geometry.inlier_mask] if keep_inliers else None,
         )
 

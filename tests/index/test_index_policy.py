@@ -45,7 +45,8 @@ def test_policy_picks_the_finest_codes_that_fit_the_budget() -> None:
     assert policy.quantizer(1408) == "SQ6"  # 1056 + 8 bytes
     assert policy.quantizer(4096) == "SQ4"
     assert policy.flat_max(256) == 32768
-    assert ivf_nlist(1_000_000) == 4096 and ivf_nlist(100_000) == 1024
+    assert ivf_nlist(1_000_000) == 1024 and ivf_nlist(100_000) == 256
+    assert ivf_nlist(1_000_000, per_sqrt=4.0) == 4096
     assert ivf_nlist(1000) == 16  # never fewer than 39 training vectors per list ... or 16 lists
 
 
@@ -149,3 +150,38 @@ def test_background_and_foreground_builds_agree() -> None:
         hits_a, hits_b = a.search(q, 1), b.search(q, 1)
         assert hits_a[0].frame_id == hits_b[0].frame_id
         assert abs(hits_a[0].similarity - hits_b[0].similarity) < 1e-3
+
+
+def test_bulk_load_rebuilds_once_at_its_final_size(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Adds inside bulk() pass every size threshold without a rebuild; leaving it rebuilds
+    once, to the type the final size calls for, and searches as a chunk-by-chunk fill does."""
+    rebuilds: list[int] = []
+    original = AtlasIndex._start_rebuild
+
+    def counted(self: AtlasIndex, size: int) -> None:
+        rebuilds.append(size)
+        original(self, size)
+
+    monkeypatch.setattr(AtlasIndex, "_start_rebuild", counted)
+    chunked, data = filled(6000)
+    assert len(rebuilds) >= 2  # flat -> IVF, then more lists as it grew
+    rebuilds.clear()
+    bulk = AtlasIndex(DIM, policy=SMALL)
+    with bulk.bulk():
+        for start in range(0, 6000, 500):
+            ids = np.arange(start, start + 500)
+            bulk.add(ids + 1000, data[ids], ["r0"] * 500)
+        assert bulk.exact and not rebuilds
+    assert rebuilds == [6000]
+    assert bulk.describe() == chunked.describe() and bulk.size == 6000
+    queries = data[::50] + 0.05 * clustered(120, seed=1)
+    found = np.array([bulk.search(q, 1)[0].frame_id for q in queries])
+    assert (found == exact_top1(data, queries)).mean() >= 0.9
+
+
+def test_fewer_lists_per_square_root() -> None:
+    assert ivf_nlist(1_000_000, per_sqrt=0.5) == 512
+    index, _ = filled(
+        3000, IndexPolicy(flat_max_bytes=100 * DIM * 4, lists_per_sqrt=0.5, background=False)
+    )
+    assert index.describe().startswith(f"IVF{ivf_nlist(3000, 0.5)},")

@@ -1,7 +1,8 @@
 """Accuracy guard of reduced-precision inference: bf16 against fp32 on real frames.
 
 Reference: the networks as kornia and the weights files give them (fp32, NCHW, BatchNorm
-unfolded). Candidate: the service's prepared path in bf16 (channels-last, folded, autocast).
+unfolded). Candidate: the service's prepared path in bf16 (channels-last, folded, bf16 weights
+with float32 normalisation statistics).
 Descriptors keep cosine >= 0.99 with the reference: dense, at keypoints both find, aggregated
 (D) and global (R); keypoints stay repeatable.
 """
@@ -21,6 +22,7 @@ from service.ml.images import decode_image, resize_long_side, to_tensor
 from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
 from service.ml.pipeline import FeaturePipeline
 from service.ml.precision import (
+    Bf16InstanceNorm,
     FastInference,
     cpu_has_native_bf16,
     fold_batchnorm,
@@ -64,6 +66,40 @@ def test_a_cpu_without_bf16_flags_falls_back_to_fp32(tmp_path: Path) -> None:
     assert cpu_has_native_bf16.__wrapped__(cpuinfo) == torch.backends.mkldnn.is_available()
 
 
+def test_bf16_instance_norm_rounds_the_float32_result_once() -> None:
+    """Statistics in float32: each output is the float32 instance norm of the same bf16 input,
+    rounded to bf16 (no bias from a bf16 mean); frames of a batch normalised apart; layout kept."""
+    generator = torch.Generator().manual_seed(0)
+    x = 20 + 0.5 * torch.randn(2, 16, 24, 40, generator=generator)
+    x[1] = x[1] * 3 - 50  # another frame, other statistics
+    x = x.to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    norm = torch.nn.InstanceNorm2d(16)
+    with torch.inference_mode():
+        got = Bf16InstanceNorm.replacing(norm)(x)
+        want = norm(x.float())
+        plain_bf16 = norm(x).float()  # torch's own: statistics rounded to bf16
+    assert got.dtype == torch.bfloat16
+    assert got.is_contiguous(memory_format=torch.channels_last)
+    one_rounding = {"rtol": 2**-8, "atol": 2**-8}
+    assert torch.allclose(got.float(), want, **one_rounding)
+    assert not torch.allclose(plain_bf16, want, **one_rounding)
+    with pytest.raises(ValueError, match="affine"):
+        Bf16InstanceNorm.replacing(torch.nn.InstanceNorm2d(16, affine=True))
+
+
+def test_disk_detect_equals_kornia_forward() -> None:
+    """The extractor's own read of the U-Net output is kornia's DISK.forward (fp32, exactly)."""
+    disk = build_local_extractor(LocalExtractorConfig(long_side=200, max_keypoints=300), "fp32")
+    image = resize_long_side(to_tensor(_frames()[0]), 200)  # 200 x 112: padded to 208 x 112
+    assert image.shape[-1] % 16 != 0
+    with torch.inference_mode():
+        want = disk.model(image, n=300, window_size=5, pad_if_not_divisible=True)[0]
+        got = disk.detect(image)[0]
+    assert torch.equal(got.keypoints, want.keypoints)
+    assert torch.equal(got.scores, want.detection_scores)
+    assert torch.allclose(got.descriptors, want.descriptors, atol=1e-6)
+
+
 def test_folding_batchnorm_keeps_the_backbone_output() -> None:
     backbone = build_backbone(BackboneConfig("mobilenetv2", 160), precision="fp32")
     trunk = _unwrapped(backbone.trunk)
@@ -91,7 +127,7 @@ def test_bf16_local_features_match_fp32(name: str, long_side: int) -> None:
             image = resize_long_side(to_tensor(rgb), long_side)[..., :256, :496]
             with torch.inference_mode():
                 dense_fp32 = plain(image)[:, :128]
-                dense_bf16 = fast.model.unet(image)[:, :128]
+                dense_bf16 = fast.model.unet(image)[:, :128].float()
             cosine = F.cosine_similarity(dense_fp32, dense_bf16, dim=1)
             assert cosine.mean() >= 0.99, cosine.mean()
         want, got = reference.extract(rgb), fast.extract(rgb)

@@ -95,11 +95,56 @@ def test_relative_pose_of_synthetic_cameras_is_recovered() -> None:
     assert found.inlier_mask[:300].mean() > 0.95 and found.inlier_mask[300:].mean() < 0.1
 
 
+@pytest.mark.parametrize("backend", ["batched", "kornia"])
+def test_fundamental_matrix_of_synthetic_cameras_separates_outliers(backend: str) -> None:
+    """Without intrinsics: a fundamental matrix whose inliers are the true correspondences,
+    and that satisfies the true geometry (epipolar constraint of the noiseless points)."""
+    a, b, k, r, t = synthetic_views(outliers=150, noise_px=0.5, seed=5)
+    found = estimate_two_view(a, b, config=RansacConfig(threshold_px=2.0, backend=backend))
+    assert found.model == "fundamental" and found.matrix is not None
+    assert found.inlier_mask[:300].mean() > 0.95 and found.inlier_mask[300:].mean() < 0.1
+    clean_a, clean_b = synthetic_views(outliers=0, noise_px=0.0, seed=5)[:2]
+    ha, hb = np.c_[clean_a, np.ones(300)], np.c_[clean_b, np.ones(300)]
+    fa, ftb = ha @ found.matrix.T, hb @ found.matrix
+    sampson = (hb * fa).sum(1) ** 2 / (fa[:, :2] ** 2 + ftb[:, :2] ** 2).sum(1)
+    assert np.sqrt(sampson).mean() < 1.0  # pixels, on the noiseless projections
+    assert np.linalg.matrix_rank(found.matrix, tol=1e-9 * np.abs(found.matrix).max()) == 2
+
+
+@pytest.mark.parametrize("backend", ["batched", "kornia"])
+def test_a_frame_against_itself_is_all_inliers(backend: str) -> None:
+    """Points that did not move: every 7-point sample is degenerate (F is any skew-symmetric
+    matrix), and every correspondence is an inlier."""
+    a = synthetic_views(outliers=0, noise_px=0.0)[0][:120]
+    found = estimate_two_view(a, a.copy(), config=RansacConfig(backend=backend))
+    assert found.model == "fundamental" and found.inliers == 120
+
+
+def test_batched_ransac_fits_several_sets_as_each_alone() -> None:
+    """Several sets in one call: each gets a model of its own geometry; a set too small, or
+    pure noise, gets none."""
+    from service.ml.batched_ransac import BatchedRansacConfig, fundamental_ransac_many
+
+    good = [synthetic_views(outliers=60, noise_px=0.5, seed=seed)[:2] for seed in (1, 2)]
+    rng = np.random.default_rng(9)
+    noise = (rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2)))
+    tiny = (good[0][0][:7], good[0][1][:7])
+    found = fundamental_ransac_many([good[0], tiny, noise, good[1]], BatchedRansacConfig())
+    assert found[1] is None
+    assert found[2] is None or found[2][1].sum() < 20
+    for set_, result in ((good[0], found[0]), (good[1], found[3])):
+        assert result is not None
+        assert result[1][:300].mean() > 0.95 and result[1][300:].mean() < 0.1
+        alone = fundamental_ransac_many([set_], BatchedRansacConfig())[0]
+        assert alone is not None and abs(int(alone[1].sum()) - int(result[1].sum())) <= 3
+
+
 def test_estimates_are_reproducible() -> None:
     a, b, k, _, _ = synthetic_views(outliers=150, noise_px=1.0, seed=3)
     first = estimate_two_view(a, b)
     second = estimate_two_view(a, b)
     assert first.model == "fundamental"
+    assert first.inliers > 0
     assert np.array_equal(first.inlier_mask, second.inlier_mask)
     assert np.allclose(first.matrix, second.matrix)
 
@@ -116,6 +161,30 @@ def test_quaternion_of_known_rotation() -> None:
     assert rotation_to_quaternion(np.eye(3)) == pytest.approx((1.0, 0.0, 0.0, 0.0))
     # 180 degrees about x: the trace branch is not taken
     assert rotation_to_quaternion(np.diag([1.0, -1.0, -1.0])) == pytest.approx((0, 1, 0, 0))
+
+
+def test_mnn_of_many_candidates_is_each_pair_alone() -> None:
+    """One product against all candidates stacked gives each candidate its own matches."""
+    rng = np.random.default_rng(0)
+
+    def features(count: int) -> LocalFeatures:
+        d = rng.standard_normal((count, 16)).astype(np.float32)
+        return LocalFeatures(np.zeros((count, 2), np.float32), d, np.ones(count, np.float32))
+
+    query = features(50)
+    near = LocalFeatures(
+        query.keypoints[:30],
+        query.descriptors[:30] + 0.1 * rng.standard_normal((30, 16)).astype(np.float32),
+        query.scores[:30],
+    )
+    candidates = [near, features(40), LocalFeatures.empty(16), features(1), near]
+    matcher = MutualNearestNeighbours(0.9)
+    together = matcher.match_many(query, candidates)
+    for candidate, matches in zip(candidates, together, strict=True):
+        alone = matcher.match(query, (1, 1), candidate, (1, 1))
+        assert np.array_equal(matches.pairs, alone.pairs)
+        assert np.allclose(matches.scores, alone.scores)
+    assert together[0].count >= 25 and together[2].count == 0
 
 
 def test_mnn_keeps_only_mutual_unambiguous_pairs() -> None:

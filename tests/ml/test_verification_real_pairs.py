@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from service.ml.images import decode_image
 from service.ml.local_extractors import LocalExtractorConfig, build_local_extractor
+from service.ml.two_view import RansacConfig
 from service.ml.verification import VerificationConfig, Verifier, View, default_min_inliers
 from tests.conftest import DATA_DIR, gardens_point_day_night
 
@@ -65,3 +67,43 @@ def test_day_night_full_size_pairs(matcher: str) -> None:
     else:  # MNN keeps ~30 inliers across day/night at 512 px: ranked, not verified, at 44
         assert same.inliers >= 20 > far.inliers, (same, far)
     assert same.inlier_ratio > far.inlier_ratio or far.matches == 0
+
+
+def test_batched_ransac_agrees_with_kornia_on_real_pairs(pipeline) -> None:  # type: ignore[no-untyped-def]
+    """Both backends on real cohog pairs (same place, neighbours, other places) and full-size
+    day/night pairs: inlier counts within max(3, 8 %) of each other and the same decision at
+    the MNN bar; verify_many answers as verify does candidate by candidate."""
+    config = VerificationConfig(matcher="mnn", min_inliers=default_min_inliers("mnn"))
+    batched = Verifier(config)
+    kornia = Verifier(
+        VerificationConfig(
+            matcher="mnn", min_inliers=config.min_inliers, ransac=RansacConfig(backend="kornia")
+        )
+    )
+    full = [
+        View(pipeline.local.extract(rgb), (rgb.shape[1], rgb.shape[0]))
+        for rgb in (
+            decode_image(gardens_point_day_night(i, s))
+            for i, s in ((2, "query"), (2, "ref"), (3, "query"), (9, "ref"))
+        )
+    ]
+    cases = [(full[0], full[1:])]
+    for place in (0, 50, 175):
+        query = cohog_view(pipeline, "query", place)
+        refs = [cohog_view(pipeline, "ref", (place + d) % 200) for d in (0, 1, 2, 60, 120)]
+        cases.append((query, refs))
+    counts = []
+    for query, refs in cases:
+        together = batched.verify_many(query, refs)
+        for ref, mine in zip(refs, together, strict=True):
+            theirs = kornia.verify(query, ref)
+            assert mine.matches == theirs.matches
+            assert abs(mine.inliers - theirs.inliers) <= max(3, 0.08 * theirs.inliers), (
+                mine,
+                theirs,
+            )
+            assert mine.verified == theirs.verified
+            alone = batched.verify(query, ref)
+            assert abs(alone.inliers - mine.inliers) <= max(3, 0.08 * mine.inliers)
+            counts.append(theirs.inliers)
+    assert max(counts) >= 2 * default_min_inliers("mnn") and np.min(counts) == 0

@@ -8,6 +8,7 @@ from fastapi import Depends, Path, Request
 
 from service.atlas.catalog import AtlasService
 from service.runtime import Runtime
+from service.storage.models import MAX_ROW_ID
 
 
 def get_runtime(request: Request) -> Runtime:
@@ -22,6 +23,5 @@ def get_service(runtime: Annotated[Runtime, Depends(get_runtime)]) -> AtlasServi
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 ServiceDep = Annotated[AtlasService, Depends(get_service)]
 
-# Ids are SQL BIGINTs: a larger number in a path is a bad request (422), not a database overflow.
-MAX_ROW_ID = 2**63 - 1
-RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A positive id (at most 2^63 - 1).")]
+# A larger id in a path is a bad request (422), not a database overflow (500).
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A positive id (at most 2^31 - 1).")]

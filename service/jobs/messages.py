@@ -21,9 +21,10 @@ from typing import Any
 from huey.registry import Message
 from huey.serializer import Serializer
 
+from service.storage.models import MAX_ROW_ID as MAX_JOB_ID
+
 log = logging.getLogger(__name__)
 
-MAX_JOB_ID = 2**63 - 1
 MAX_MESSAGE_BYTES = 64 * 1024
 
 
@@ -107,7 +108,7 @@ class JobIdSerializer(Serializer):  # type: ignore[misc]
 
 def _job_id(value: Any) -> int:
     if type(value) is not int or not 1 <= value <= MAX_JOB_ID:
-        raise RejectedMessage(f"a job id is an integer in 1..2^63-1, not {value!r}")
+        raise RejectedMessage(f"a job id is an integer in 1..{MAX_JOB_ID}, not {value!r}")
     return value
 
 

@@ -10,7 +10,8 @@ import zipfile
 import numpy as np
 from hypothesis import strategies as st
 
-HUGE_INTEGERS = (2**63, 2**64, -(2**63) - 1, 10**30, 1409, 4096)
+# 2**31: past the 32-bit INTEGER ids of PostgreSQL (a lookup of one once overflowed there, 500)
+HUGE_INTEGERS = (2**31, 6469693229, 2**63, 2**64, -(2**63) - 1, 10**30, 1409, 4096)
 
 
 def deep_json(depth: int = 50_000) -> str:

@@ -72,6 +72,23 @@ def test_nul_characters_in_text_are_422_on_every_database(
     assert stored_state(client) == before and client.get("/v1/atlases").json() == atlases
 
 
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/v1/atlases/campus/frames/2147483648",  # 2**31: one past PostgreSQL's INTEGER ids
+        "/v1/atlases/campus/frames/6469693229/thumbnail",
+        "/v1/atlases/campus/jobs/2147483648",
+    ],
+)
+def test_ids_past_the_databases_range_are_422_on_every_database(
+    client: TestClient, path: str
+) -> None:
+    response = client.get(path)
+    assert response.status_code == 422, response.text
+    assert "2147483647" in response.text
+    assert client.get("/v1/atlases/campus/frames/2147483647").status_code == 404
+
+
 def test_nul_characters_in_form_fields_are_422(client: TestClient) -> None:
     before = stored_state(client)
     for data in ({"submap": "s0\x00", "robot_id": "r1"}, {"submap": "s0", "robot_id": "r\x001"}):

@@ -53,6 +53,15 @@ class Matcher(Protocol):
         size_b: tuple[int, int],
     ) -> Matches: ...
 
+    def match_many(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        candidates: Sequence[tuple[LocalFeatures, tuple[int, int]]],
+    ) -> list[Matches]:
+        """``a`` matched with each ``(features, image size)`` candidate, in order."""
+        ...
+
 
 class MutualNearestNeighbours:
     """Mutual nearest neighbours on cosine similarity with Lowe's ratio test.
@@ -77,11 +86,22 @@ class MutualNearestNeighbours:
         b: LocalFeatures,
         size_b: tuple[int, int],
     ) -> Matches:
-        return self.match_many(a, [b])[0]
+        return self.match_many(a, size_a, [(b, size_b)])[0]
 
-    def match_many(self, a: LocalFeatures, candidates: Sequence[LocalFeatures]) -> list[Matches]:
+    def match_many(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        candidates: Sequence[tuple[LocalFeatures, tuple[int, int]]],
+    ) -> list[Matches]:
         """``a`` matched with each candidate, from one product of ``a``'s descriptors with all
-        the candidates' stacked (one matrix product instead of one per candidate)."""
+        the candidates' stacked (one matrix product instead of one per candidate); image
+        sizes do not matter to MNN."""
+        return self._match_descriptors(a, [b for b, _ in candidates])
+
+    def _match_descriptors(
+        self, a: LocalFeatures, candidates: Sequence[LocalFeatures]
+    ) -> list[Matches]:
         for b in candidates:
             if b.count and a.count and a.descriptors.shape[1] != b.descriptors.shape[1]:
                 raise ValueError(
@@ -163,6 +183,15 @@ class LightGlueMatcher:
         pairs = out["matches"][0].numpy().astype(np.int64).reshape(-1, 2)
         scores = out["scores"][0].float().numpy().astype(np.float32).reshape(-1)
         return Matches(pairs, scores)
+
+    def match_many(
+        self,
+        a: LocalFeatures,
+        size_a: tuple[int, int],
+        candidates: Sequence[tuple[LocalFeatures, tuple[int, int]]],
+    ) -> list[Matches]:
+        """One LightGlue pass per candidate (the network attends across each pair)."""
+        return [self.match(a, size_a, b, size_b) for b, size_b in candidates]
 
 
 def _unit(descriptors: np.ndarray) -> np.ndarray:

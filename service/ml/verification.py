@@ -17,7 +17,7 @@ import numpy as np
 
 from service.ml.features import LocalFeatures
 from service.ml.geometry import Intrinsics
-from service.ml.matching import Matcher, Matches, MutualNearestNeighbours, build_matcher
+from service.ml.matching import Matcher, Matches, build_matcher
 from service.ml.two_view import (
     RansacConfig,
     TwoViewGeometry,
@@ -119,13 +119,9 @@ class Verifier:
         product and the batched RANSAC fits their fundamental matrices together. ``ms`` is
         each candidate's share of the whole."""
         start = time.perf_counter()
-        if isinstance(self.matcher, MutualNearestNeighbours):
-            found = self.matcher.match_many(query.local, [c.local for c in candidates])
-        else:
-            found = [
-                self.matcher.match(query.local, query.image_size, c.local, c.image_size)
-                for c in candidates
-            ]
+        found = self.matcher.match_many(
+            query.local, query.image_size, [(c.local, c.image_size) for c in candidates]
+        )
         k_query = _camera(query.intrinsics)
         geometries = estimate_two_view_many(
             [

@@ -179,7 +179,7 @@ def test_mnn_of_many_candidates_is_each_pair_alone() -> None:
     )
     candidates = [near, features(40), LocalFeatures.empty(16), features(1), near]
     matcher = MutualNearestNeighbours(0.9)
-    together = matcher.match_many(query, candidates)
+    together = matcher.match_many(query, (1, 1), [(c, (1, 1)) for c in candidates])
     for candidate, matches in zip(candidates, together, strict=True):
         alone = matcher.match(query, (1, 1), candidate, (1, 1))
         assert np.array_equal(matches.pairs, alone.pairs)

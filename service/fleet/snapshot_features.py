@@ -13,6 +13,7 @@ import numpy as np
 
 from service.errors import InvalidInput
 from service.fleet.snapshot_archive import ArchiveLimits
+from service.ml.features import as_stored
 
 MAX_DIM = 4096  # widest feature, hidden layer or embedding accepted (RetrainParams.embed_dim)
 
@@ -103,7 +104,8 @@ def decode_features(data: bytes, limits: ArchiveLimits) -> Features:
         descriptors=arrays["descriptors"].astype("<f2", copy=False),
         scores=arrays["scores"].astype("<f4", copy=False),
         local_vectors=arrays["local_vectors"].astype("<f4", copy=False),
-        global_vectors=arrays["global_vectors"].astype("<f4", copy=False),
+        # rounded as the store keeps R, so the restored embedding is the stored frame's
+        global_vectors=as_stored(arrays["global_vectors"]),
     )
     for name in ("keypoints", "scores", "local_vectors", "global_vectors"):
         if not np.isfinite(getattr(features, name)).all():

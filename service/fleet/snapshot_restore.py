@@ -33,6 +33,7 @@ from service.index import AtlasIndex
 from service.ml.pipeline import embed_vectors
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.feature_store import global_vector_bytes
 from service.storage.models import Atlas, Frame, FrameFeatureRow, LoopClosure, ModelVersion, Submap
 
 log = logging.getLogger(__name__)
@@ -233,7 +234,7 @@ def _write_frames(
                         "descriptors": features.descriptors[a:b].tobytes(),
                         "scores": features.scores[a:b].tobytes(),
                         "local_vector": features.local_vectors[i].tobytes(),
-                        "global_vector": features.global_vectors[i].tobytes(),
+                        "global_vector": global_vector_bytes(features.global_vectors[i]),
                     }
                 )
             session.execute(insert(FrameFeatureRow), rows)

@@ -23,6 +23,11 @@ def global_vector_of(stored: bytes, dim: int) -> np.ndarray:
     return np.frombuffer(stored, dtype).astype(np.float32)
 
 
+def global_vector_bytes(vector: np.ndarray) -> bytes:
+    """A backbone vector R as the store keeps it: little-endian float16."""
+    return np.ascontiguousarray(vector, "<f2").tobytes()
+
+
 def to_row(frame_id: int | None, features: FrameFeatures) -> FrameFeatureRow:
     """Pack features: descriptors and the backbone vector R as float16 (features already hold
     float16-exact values, so a stored frame is the frame), the rest float32."""
@@ -34,7 +39,7 @@ def to_row(frame_id: int | None, features: FrameFeatures) -> FrameFeatureRow:
         descriptors=np.ascontiguousarray(local.descriptors, "<f2").tobytes(),
         scores=np.ascontiguousarray(local.scores, "<f4").tobytes(),
         local_vector=np.ascontiguousarray(features.local_vector, "<f4").tobytes(),
-        global_vector=np.ascontiguousarray(features.global_vector, "<f2").tobytes(),
+        global_vector=global_vector_bytes(features.global_vector),
     )
     if frame_id is not None:
         row.frame_id = frame_id

@@ -21,6 +21,7 @@ validation accuracy worse than it found it.
 from __future__ import annotations
 
 import copy
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -132,9 +133,11 @@ class TrainingData:
     frame_ids: np.ndarray
     robots: np.ndarray | None = None
 
+    @functools.cached_property
     def sequence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per frame: robot code, rank in that robot's sequence, and the gap beyond which two
-        of its frames are different places (:func:`service.ml.impostors.sequence_positions`)."""
+        of its frames are different places (:func:`service.ml.impostors.sequence_positions`);
+        computed once, though every epoch's validation asks for it."""
         robots = self.robots if self.robots is not None else np.zeros(len(self.submaps))
         return sequence_positions([str(r) for r in robots], np.asarray(self.frame_ids))
 
@@ -227,7 +230,7 @@ def contrastive_pairs(
     if window == 0:
         positives, negatives = same_submap.copy(), ~same_submap
     else:
-        codes, rank, gap = (part[idx] for part in data.sequence())
+        codes, rank, gap = (part[idx] for part in data.sequence)
         same_robot = codes[:, None] == codes[None, :]
         apart = np.abs(rank[:, None] - rank[None, :])
         positives = same_submap & ((apart <= window) | ~same_robot)

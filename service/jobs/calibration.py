@@ -22,6 +22,7 @@ from service.index import AtlasIndex
 from service.ml.aggregators import AGGREGATORS
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.heads import LoopNetHeads
+from service.ml.impostors import frames_for_impostor_model
 from service.ml.inlier_threshold import InlierThreshold, fit_inlier_threshold, hard_impostors
 from service.ml.pipeline import embed_vectors
 from service.ml.training import TrainingCancelled
@@ -34,7 +35,8 @@ from service.storage.models import Atlas
 if TYPE_CHECKING:
     from service.jobs.retraining import JobRunner
 
-MIN_FRAMES = 10  # fewer frames cannot whiten two branches nor sample impostor pairs
+# fewer frames cannot whiten two branches nor give the impostor model its distinct pairs (11)
+MIN_FRAMES = max(10, frames_for_impostor_model())
 
 
 def calibration_config(params: dict[str, Any]) -> CalibrationConfig:

@@ -42,7 +42,7 @@ def sequence_positions(
     for code in range(len(sizes)):
         members = np.flatnonzero(codes == code)
         rank[members[np.argsort(order[members], kind="stable")]] = np.arange(len(members))
-    return codes, rank, np.maximum(5, sizes // 20)[codes]
+    return codes, rank, np.maximum(MIN_GAP, sizes // 20)[codes]
 
 
 def impostor_pairs(
@@ -182,6 +182,18 @@ class ImpostorModel:
 
 
 MIN_PAIRS = 20
+MIN_GAP = 5  # frames of one robot at least this far apart are different places
+
+
+def frames_for_impostor_model() -> int:
+    """The fewest frames of one robot that give ``MIN_PAIRS`` distinct impostor pairs: ``n``
+    frames at least ``MIN_GAP`` apart pair up ``(n - MIN_GAP) (n - MIN_GAP + 1) / 2`` ways."""
+    n = MIN_GAP + 1
+    while (n - MIN_GAP) * (n - MIN_GAP + 1) // 2 < MIN_PAIRS:
+        n += 1
+    return n
+
+
 MIN_TAIL_PAIRS = 50  # pairs beyond the tail's start needed to measure its scale
 HEAVIER_THAN_NORMAL = 2.0  # empirical / normal mean excess on the dev sets: 2.2 (DISK), 2.3 (XFeat)
 

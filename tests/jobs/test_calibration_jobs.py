@@ -12,6 +12,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.jobs.calibration import MIN_FRAMES
+from service.ml.impostors import frames_for_impostor_model
 from service.ml.verification import default_min_inliers
 from tests.api.helpers import create_atlas
 from tests.conftest import make_settings, wait_ready
@@ -171,4 +173,5 @@ def test_job_parameters_of_the_other_kind_are_refused(client: TestClient) -> Non
     assert wrong.status_code == 422
     few = client.post("/v1/atlases/campus/jobs", json={"kind": "calibrate"})
     assert few.status_code == 422 and "at least" in few.json()["detail"]
+    assert frames_for_impostor_model() <= MIN_FRAMES  # what the job accepts, it can fit
     assert jobs(client) == []

@@ -12,7 +12,12 @@ from service.ml.aggregators import MeanAggregator, VladAggregator, fit_aggregato
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.features import LocalFeatures
 from service.ml.heads import LoopNetHeads
-from service.ml.impostors import ImpostorModel, impostor_pairs
+from service.ml.impostors import (
+    MIN_PAIRS,
+    ImpostorModel,
+    frames_for_impostor_model,
+    impostor_pairs,
+)
 from service.ml.pipeline import embed_vectors
 from service.ml.whitening import Whitening, WhiteningConfig
 
@@ -168,7 +173,7 @@ def test_one_threshold_means_the_same_on_differently_spread_atlases() -> None:
 
 def _synthetic_atlas(n: int = 120, dim: int = 64, seed: int = 0) -> CalibrationInputs:
     rng = np.random.default_rng(seed)
-    places = rng.normal(size=(n // 4, 8, dim))  # each place has its own descriptor pattern
+    places = rng.normal(size=(-(-n // 4), 8, dim))  # each place has its own descriptor pattern
 
     def frame(i: int) -> np.ndarray:
         d = places[i // 4][rng.integers(0, 8, 60)] + 0.3 * rng.normal(size=(60, dim))
@@ -281,6 +286,18 @@ def test_impostor_pairs_are_distinct_on_a_small_atlas() -> None:
     first, second = impostor_pairs(["r"] * 12, np.arange(12), pairs=10_000, min_gap=5)
     keys = {(min(i, j), max(i, j)) for i, j in zip(first, second, strict=True)}
     assert len(keys) == len(first) == sum(1 for i in range(12) for j in range(i + 5, 12))
+
+
+def test_the_fewest_frames_for_an_impostor_model_calibrate() -> None:
+    """Ten frames of one robot give 15 distinct impostor pairs, too few: the calibration job
+    once accepted them and failed inside (and `loopnet eval` of a 10-frame dataset with it)."""
+    fewest = frames_for_impostor_model()
+    assert fewest == 11
+    fitted = Calibration.fit(_synthetic_atlas(n=fewest), CalibrationConfig(words=8))
+    assert fitted.calibration.impostors is not None
+    assert fitted.calibration.impostors.pairs >= MIN_PAIRS
+    with pytest.raises(ValueError, match="at least 20 distinct pairs"):
+        Calibration.fit(_synthetic_atlas(n=fewest - 1), CalibrationConfig(words=8))
 
 
 def test_a_tiny_atlas_gets_a_finite_modest_score() -> None:

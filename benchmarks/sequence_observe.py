@@ -4,11 +4,13 @@ frame rows and the service's :class:`AtlasIndex` (inverted file at this size).
 
 The atlas is ``--robots`` trajectories (``synthetic_embeddings.py``, one place per frame, one
 second apart). A rover then streams noisy revisits of random stretches: before each timed
-observe its previous frame is committed and added to the index, as ``observe`` does, so every
-timed call also brings the process's sequence map up to date (one frame through the index's
-journal). Timed: reading the robot's recent frames, the map update, candidate proposal and
-scoring, and the consistency check's searches of the previous frames; not timed: the newest
-frame's own search (the single-frame query does it anyway).
+observe its previous frame is committed with the matches its own search found (as ``observe``
+keeps them; ``--without-proposals``: stored as ``POST /frames`` stores, so every earlier frame
+is searched again) and added to the index, so every timed call also brings the process's
+sequence map up to date (one frame through the index's journal). Timed: reading the robot's
+recent frames and their kept matches, the map update, candidate proposal and scoring, the
+margin over the best rival, and the consistency check; not timed: the newest frame's own search
+(the single-frame query does it anyway).
 
     nice -n 10 python benchmarks/sequence_observe.py --frames 100000 --dim 512 --json out.json
 """
@@ -32,7 +34,7 @@ from service.atlas.sequences import RobotContext, SequenceScorer
 from service.atlas.state import LoadedAtlas
 from service.config import Settings
 from service.index import AtlasIndex, IndexPolicy
-from service.storage.models import Atlas, Base, Frame, Submap
+from service.storage.models import Atlas, Base, Frame, FrameProposals, Submap
 
 
 def run(args: argparse.Namespace) -> dict[str, object]:
@@ -98,6 +100,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 )
                 clock += 100.0  # a new stretch: a new sequence
                 for j in range(length - 1):  # the rover's earlier frames, stored by observe
+                    rover = np.arange(args.frames + 1, next_id)
+                    found = index.search(noisy[j], 50, exclude=rover)
                     with sessions.begin() as session:
                         session.execute(
                             insert(Frame),
@@ -114,6 +118,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                                 )
                             ],
                         )
+                        if not args.without_proposals:
+                            kept = np.array([h.frame_id for h in found], dtype="<i4")
+                            session.add(FrameProposals(frame_id=next_id, frame_ids=kept.tobytes()))
                     index.add(np.array([next_id]), noisy[j][None], ["rover"])
                     next_id += 1
                     if j < length - 2:  # all but the last one were observed earlier
@@ -149,6 +156,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         "robots": args.robots,
         "observations": args.observations,
         "seed_frames": args.seed_frames,
+        "proposals_kept": not args.without_proposals,
         "index": index.describe(),
         "index_build_s": round(build_s, 1),
         "map_build_s": round(map_build_s, 2),
@@ -166,7 +174,12 @@ def main() -> None:
     parser.add_argument("--observations", type=int, default=100)
     parser.add_argument("--noise", type=float, default=0.5)
     parser.add_argument(
-        "--seed-frames", type=int, default=1, help="LOOPNET_SEQUENCE_SEED_FRAMES (0: all)"
+        "--seed-frames", type=int, default=0, help="LOOPNET_SEQUENCE_SEED_FRAMES (0: all)"
+    )
+    parser.add_argument(
+        "--without-proposals",
+        action="store_true",
+        help="earlier frames stored without their matches (POST /frames): searched again",
     )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()

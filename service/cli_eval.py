@@ -107,9 +107,9 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
     ev.add_argument(
         "--sequence-seed-frames",
         type=int,
-        default=1,
+        default=0,
         help="sequence rows: newest query frames whose best matches propose candidates "
-        "(1: the service's; 0: all)",
+        "(0: all, the service's default; 1: the newest only)",
     )
     ev.set_defaults(func=cmd_eval)
     add_online_parser(commands)

@@ -96,12 +96,22 @@ class Settings(BaseSettings):
         description="A robot's frames further apart in time than this start a new sequence.",
     )
     sequence_seed_frames: int = Field(
-        1,
+        0,
         ge=0,
         le=50,
         description="Frames of a robot's sequence, newest first, whose best matches propose "
-        "places to score (0: all). 1 uses the query's own search; each more frame costs one "
-        "index search per request.",
+        "places to score (0: all). An observed frame keeps its own search's matches, so it "
+        "proposes without a search; a frame stored without one (POST /frames) costs one index "
+        "search per request.",
+    )
+    sequence_margin_min: float = Field(
+        6.0,
+        ge=0.0,
+        description="A robot's sequence is a loop on its own when its best place's score "
+        "exceeds that of the best rival place (more than 3 frames away along a trajectory, or "
+        "on another) by this many standard deviations and it aligned at least "
+        "consistency_frames frames. 6: the largest margin of a wrong sequence answer on the "
+        "first half of the development sets' queries at L = 10 (5.86, Nordland).",
     )
     consistency_frames: int = Field(
         3,

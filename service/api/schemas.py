@@ -148,6 +148,19 @@ class SequenceOut(BaseModel):
     )
     speed: float = Field(description="Reference frames passed per query frame.")
     frame_id: int = Field(description="The reference frame aligned with this query.")
+    margin: float = Field(
+        description="score minus that of the best rival place (a scored candidate more than 3 "
+        "frames away along its trajectory, or on another one; 0 when none was scored): in "
+        "standard deviations, how distinct the place is from its best look-alike."
+    )
+    rival_frame_id: int | None = Field(
+        description="The rival place's frame aligned with this query; null when there was none."
+    )
+    passed: bool = Field(
+        description="A loop on the sequence's own evidence: margin >= LOOPNET_SEQUENCE_MARGIN_MIN "
+        "over at least LOOPNET_CONSISTENCY_FRAMES aligned frames, and this query's frame alone "
+        "favours the aligned frame (its standardised similarity is at least 1)."
+    )
 
 
 class QueryOut(BaseModel):
@@ -182,12 +195,19 @@ class QueryOut(BaseModel):
     )
     status: Literal["loop", "candidate", "new_place"] = Field(
         description="'loop': loop_closure holds and the robot's last consistency_frames "
-        "observations agree on one place; 'candidate': loop_closure holds, not yet "
-        "consistent; 'new_place': nothing passes. Without a robot: 'loop' or 'new_place'."
+        "observations agree on one place, or the robot's sequence passed on its own "
+        "(sequence.passed); 'candidate': loop_closure holds, not yet consistent; 'new_place': "
+        "nothing passes. Without a robot: 'loop' or 'new_place'."
     )
     new_place: bool = Field(description="Nothing in the atlas passes: the robot is somewhere new.")
     consistent: int = Field(
         description="Consecutive agreeing observations of the robot, this one included."
+    )
+    loop_frame_id: int | None = Field(
+        None,
+        description="When status is 'loop', the frame to close the loop with: the match when the "
+        "single-frame answer passed consistently, else the sequence's aligned frame "
+        "(sequence.frame_id); null otherwise.",
     )
     sequence: SequenceOut | None = Field(
         None,

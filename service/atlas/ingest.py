@@ -112,10 +112,18 @@ class FrameIngest:
         fields.validate()
         return self.store(atlas_name=atlas_name, fields=fields, features=features)
 
-    def store(self, *, atlas_name: str, fields: FrameFields, features: FrameFeatures) -> Frame:
+    def store(
+        self,
+        *,
+        atlas_name: str,
+        fields: FrameFields,
+        features: FrameFeatures,
+        proposals: list[int] | None = None,
+    ) -> Frame:
         """Commit a validated frame's rows in one transaction; the embedding is then computed
         with the atlas's *current* heads and added to its index, so a model swap in between
-        cannot leave the frame embedded by the wrong version."""
+        cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
+        own search found (an observation's), kept for sequence scoring."""
         with transaction(self.sessions) as session:
             atlas = self.checked_atlas(session, atlas_name)
             submap = repo.get_submap(session, atlas=atlas, name=fields.submap_name)
@@ -128,6 +136,7 @@ class FrameIngest:
                 pose=fields.pose,
                 intrinsics=fields.intrinsics,
                 features=features,
+                proposals=proposals,
             )
             revision = change_feed.record(
                 session, atlas_id=atlas.id, op=change_feed.ADD, frame_ids=[frame.id]

@@ -119,7 +119,9 @@ class Observations:
         """Query, then insert in one transaction: the frame never matches itself, and a
         failure writes nothing."""
         result = self._search(atlas_name, features, k, query_filter, fields.intrinsics, robot)
-        frame = self.ingest.store(atlas_name=atlas_name, fields=fields, features=features)
+        frame = self.ingest.store(
+            atlas_name=atlas_name, fields=fields, features=features, proposals=result.proposals
+        )
         return result, frame
 
 

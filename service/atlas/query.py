@@ -59,6 +59,7 @@ class Found:
     names: dict[int, str]
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
     evidence: RobotEvidence | None  # the robot's sequence and previous observations
+    proposals: list[int]  # the search's best frames: what this frame proposes to sequences
 
 
 class AtlasQueries(Observations):
@@ -225,7 +226,7 @@ class AtlasQueries(Observations):
         verdict = (
             found.evidence.verdict(match.frame_id if match else None, loop_closure)
             if found.evidence is not None
-            else single_frame_verdict(loop_closure)
+            else single_frame_verdict(match.frame_id if match else None, loop_closure)
         )
         return QueryResult(
             atlas=atlas_name,
@@ -248,7 +249,9 @@ class AtlasQueries(Observations):
             status=verdict.status.value,
             new_place=verdict.status == PlaceStatus.NEW_PLACE,
             consistent=verdict.consistent,
+            loop_frame_id=verdict.loop_frame_id,
             sequence=found.evidence.sequence if found.evidence is not None else None,
+            proposals=found.proposals,
         )
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
@@ -276,7 +279,7 @@ class AtlasQueries(Observations):
         selection = resolve(session, atlas, query_filter)
         top = self.verification.config.top
         pool = max(k, top, MARGIN_POOL)
-        if robot is not None and robot.sequence_length:
+        if robot is not None:  # its frame's proposals are kept by an observation
             pool = max(pool, SERVICE_SEQUENCE.seeds)
         start = time.perf_counter()
         hits = state.index.search(
@@ -298,4 +301,5 @@ class AtlasQueries(Observations):
         stored: dict[int, LocalFeatures] = {}
         if self.verification.enabled and candidates:
             stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
-        return Found(candidates, frames, names, stored, evidence)
+        proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
+        return Found(candidates, frames, names, stored, evidence, proposals)

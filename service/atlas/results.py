@@ -60,8 +60,12 @@ class QueryResult:
     status: str = "new_place"
     new_place: bool = True  # status == "new_place", a field of its own
     consistent: int = 0  # consecutive agreeing observations, this one included
+    loop_frame_id: int | None = None  # the frame to close the loop with, when status is "loop"
     sequence: SequenceAnswer | None = None
     query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
+    # the search's frames, best first, filter applied: what an observation keeps as the places
+    # its frame proposes to later sequences (not part of the answer)
+    proposals: list[int] = field(default_factory=list, repr=False)
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

@@ -9,8 +9,9 @@ all frames' matches proposing candidates) for synthetic checks of the metrics. F
 from the evaluation's feature cache (the same files ``loopnet eval`` writes), so no CNN runs
 twice.
 
-Metrics: precision-recall of loop closures (a frame is a true positive when its answer is one of
-its ground-truth partners; recall divides by the frames that have a partner in the map), recall
+Metrics: precision-recall of loop closures, swept over the cosine (L = 1) or the sequence's
+margin over its best rival place (L > 1: what the service decides a sequence loop on; a frame
+is a true positive when its answer is one of its ground-truth partners; recall divides by the frames that have a partner in the map), recall
 at 100% precision, with and without temporal consistency, and per-frame latency of the call.
 """
 
@@ -39,6 +40,7 @@ from service.ml.sequences import (
     SequenceSettings,
     Trajectories,
     consistent_scores,
+    distinctiveness,
     match_sequence,
 )
 
@@ -96,7 +98,7 @@ class OnlineMap:
 @dataclass(frozen=True)
 class Observation:
     reference: int  # best map frame, -1 when the map is empty
-    score: float  # sequence score (L > 1) or cosine similarity (L = 1)
+    score: float  # sequence margin over the best rival (L > 1) or cosine similarity (L = 1)
     length: int
     ms: float
 
@@ -122,12 +124,13 @@ def observe(state: OnlineMap, frame: int) -> Observation:
         state.moments,
         SequenceSettings(length=state.settings.length, seeds=state.settings.seeds),
         eligible=lambda frames: frames < in_map,
-        top=1,
+        top=None,
     )
+    distinct = distinctiveness(matches, state.trajectories, state.settings.consistency.max_step)
     ms = (time.perf_counter() - start) * 1000.0
-    if not matches:
+    if distinct is None:
         return Observation(-1, -np.inf, 0, ms)
-    return Observation(matches[0].reference, matches[0].score, matches[0].length, ms)
+    return Observation(matches[0].reference, distinct.margin, matches[0].length, ms)
 
 
 def trajectory_vectors(

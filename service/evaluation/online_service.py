@@ -91,7 +91,8 @@ def service_observations(
                 index_of[frame.id] = t
                 if result.sequence is not None:
                     answer = result.sequence
-                    answers.append((index_of[answer.frame_id], answer.score, answer.length, ms))
+                    # the sequence decides on its margin over the best rival place
+                    answers.append((index_of[answer.frame_id], answer.margin, answer.length, ms))
                 elif result.match is not None:
                     answers.append(
                         (index_of[result.match.frame_id], result.match.similarity, 1, ms)

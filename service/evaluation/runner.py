@@ -105,8 +105,8 @@ class EvalConfig:
         query_stride: keep every n-th query only (bounded runs on long datasets).
         sequence: sequence lengths L of the ``+seqL`` rows; empty: none.
         sequence_contrast: the sequence rows' local contrast window (0: whole-map z-scores).
-        sequence_seed_frames: newest query frames whose best matches propose candidates (the
-            service's 1: its own search hits; 0: every frame's).
+        sequence_seed_frames: newest query frames whose best matches propose candidates (0:
+            every frame's, the service's default; 1: the newest frame's own search hits).
         precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
             precision are reused in another, so give each its own ``cache_dir``.
     """
@@ -140,7 +140,7 @@ class EvalConfig:
     query_stride: int = 1
     sequence: tuple[int, ...] = ()
     sequence_contrast: int = 0
-    sequence_seed_frames: int = 1
+    sequence_seed_frames: int = 0
     precision: str = "fp32"
 
 

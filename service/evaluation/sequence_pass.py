@@ -7,6 +7,10 @@ starts a new run); the map's frames are one trajectory per run of consecutive re
 Seeds are each query frame's best map matches by exact cosine (what the service's index
 returns); the map's similarity statistics come from :class:`MapMoments`, once per query (the
 service's cache of a robot's recent frames), so the timed step is what a warm observe adds.
+Places are ranked by sequence score; the loop-closure sweep (AUC-PR, recall at 100% precision)
+runs on the best place's *margin* over its best rival (:mod:`service.ml.sequences.distinctiveness`),
+what the service decides a sequence loop on: the ranking's scores are the sequence scores minus
+the rival's, so their order is the score's and the first column is the margin.
 """
 
 from __future__ import annotations
@@ -20,7 +24,15 @@ import numpy as np
 from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking
 from service.evaluation.protocol import MethodResult, evaluate_ranking
-from service.ml.sequences import MapMoments, SequenceSettings, Trajectories
+from service.ml.sequences import (
+    ConsistencySettings,
+    MapMoments,
+    SequenceSettings,
+    Trajectories,
+    distinctiveness,
+)
+
+RIVAL_WINDOW = ConsistencySettings().max_step  # the service's "another place" along a trajectory
 
 
 def frame_numbers(labels: Sequence[str]) -> np.ndarray | None:
@@ -61,7 +73,8 @@ def sequence_ranking(
     settings: SequenceSettings,
     k: int,
 ) -> tuple[Ranking, np.ndarray, np.ndarray]:
-    """Rank every query by sequence score; also the length used and the per-query milliseconds.
+    """Rank every query by sequence score, minus the best rival's (so the first column is
+    the margin); also the length used and the per-query milliseconds.
 
     ``reference`` and ``query`` are unit vectors (``R x d``, ``Q x d``).
     """
@@ -88,12 +101,15 @@ def sequence_ranking(
             trajectories,
             moments,
             settings,
-            top=k,
+            top=None,
             row_stats=(mean[window], std[window]),
         )
+        distinct = distinctiveness(matches, trajectories, RIVAL_WINDOW)
         elapsed[i] = (time.perf_counter() - start) * 1000.0
+        rival = matches[0].score - distinct.margin if distinct is not None else 0.0
+        matches = matches[:k]
         indices[i, : len(matches)] = [m.reference for m in matches]
-        scores[i, : len(matches)] = [m.score for m in matches]
+        scores[i, : len(matches)] = [m.score - rival for m in matches]
         lengths[i] = matches[0].length if matches else 0
     return Ranking(indices, scores), lengths, elapsed
 
@@ -121,10 +137,9 @@ def sequence_methods(
             if chosen.contrast_window:
                 suffix += f"-lc{chosen.contrast_window}"
                 words += f", local contrast {chosen.contrast_window}"
-            if chosen.seed_frames != 1:
-                seeded = chosen.seed_frames or "all"
-                suffix += f"-seeds{seeded}"
-                words += f", matches of {seeded} frames propose"
+            if chosen.seed_frames:  # the service's default is every frame's matches
+                suffix += f"-seeds{chosen.seed_frames}"
+                words += f", matches of the newest {chosen.seed_frames} frames propose"
             rows.append(
                 evaluate_ranking(
                     f"{method.name}+seq{length}{suffix}",
@@ -146,6 +161,8 @@ def sequence_methods(
                             "contrast_window": chosen.contrast_window,
                         },
                         "mean_length_used": float(used.mean()) if len(used) else 0.0,
+                        "loop_confidence": f"margin over the best rival more than {RIVAL_WINDOW} "
+                        "frames away (sequence score minus the rival's)",
                         "query_ms_note": "sequence scoring only (added to the method's query)",
                     },
                 )

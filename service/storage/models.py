@@ -271,6 +271,20 @@ class FrameThumbnail(Base):
     jpeg: Mapped[bytes] = mapped_column(LargeBinary)
 
 
+class FrameProposals(Base):
+    """The frames an observed frame's own search returned (best first, int32 little-endian
+    ids, the filter of its request applied): the places it proposes when it is one of its
+    robot's recent frames in a later request's sequence. Derived data: a frame without a row
+    (stored by ``POST /frames``, or restored from a snapshot) is searched again instead."""
+
+    __tablename__ = "frame_proposals"
+
+    frame_id: Mapped[int] = mapped_column(
+        ForeignKey("frames.id", ondelete="CASCADE"), primary_key=True
+    )
+    frame_ids: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 class LoopClosureThumbnail(Base):
     """The thumbnail of the query image that closed a loop (a query keeps no frame)."""
 

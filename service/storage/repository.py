@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -12,7 +14,14 @@ from service.errors import Conflict, NotFound
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
 from service.storage.feature_store import to_row
-from service.storage.models import Atlas, Frame, FrameThumbnail, ModelVersion, Submap
+from service.storage.models import (
+    Atlas,
+    Frame,
+    FrameProposals,
+    FrameThumbnail,
+    ModelVersion,
+    Submap,
+)
 
 
 def create_atlas(
@@ -108,8 +117,12 @@ def add_frame(
     pose: Pose | None,
     intrinsics: Intrinsics | None,
     features: FrameFeatures,
+    proposals: Sequence[int] | None = None,
 ) -> Frame:
-    """Insert a frame and its features in the caller's transaction; returns it with its id."""
+    """Insert a frame and its features in the caller's transaction; returns it with its id.
+
+    ``proposals``: the frames the frame's own search returned, best first (an observation's),
+    kept for sequence scoring (:class:`~service.storage.models.FrameProposals`)."""
     width, height = features.image_size
     frame = Frame(
         atlas_id=atlas.id,
@@ -131,8 +144,24 @@ def add_frame(
     session.add(to_row(frame.id, features))
     if features.thumbnail is not None:
         session.add(FrameThumbnail(frame_id=frame.id, jpeg=features.thumbnail))
+    if proposals is not None:
+        ids = np.asarray(proposals, dtype="<i4")
+        session.add(FrameProposals(frame_id=frame.id, frame_ids=ids.tobytes()))
     session.flush()
     return frame
+
+
+def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, np.ndarray]:
+    """The stored proposals (int64 frame ids, best first) of those of ``frame_ids`` that have
+    them."""
+    if not frame_ids:
+        return {}
+    rows = session.execute(
+        select(FrameProposals.frame_id, FrameProposals.frame_ids).where(
+            FrameProposals.frame_id.in_(list(frame_ids))
+        )
+    )
+    return {int(i): np.frombuffer(blob, dtype="<i4").astype(np.int64) for i, blob in rows}
 
 
 def get_frame(session: Session, *, atlas: Atlas, frame_id: int) -> Frame:

@@ -16,9 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
+from service.atlas.ingest import FrameFields
+from service.atlas.results import QueryResult
 from service.features_payload import encode_features
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.storage.models import FrameProposals
 from tests.conftest import make_settings, wait_ready
 
 PLACES = 40
@@ -202,3 +206,91 @@ def test_two_replicas_on_postgresql_answer_alike(
             wait_ready(second)
             assert query(second, pipeline, newest, **fields)["sequence"] == answer
     assert answer["frame_id"] == ids[24] and answer["length"] == 5
+
+
+def observe(client: TestClient, frame: FrameFeatures, t: float, **fields: object) -> QueryResult:
+    """The rover observes a frame (query, then insert) through the service, as ``observe`` over
+    HTTP does after extraction."""
+    service = client.app.state.runtime.service  # type: ignore[attr-defined]
+    result, _ = service.observe_features(
+        atlas_name="campus",
+        fields=FrameFields("s0", "rover", timestamp=t),
+        features=frame,
+        query_filter=service.query_filter(robot_id="rover", timestamp=t),
+        **fields,
+    )
+    return result  # type: ignore[no-any-return]
+
+
+def kept_proposals(client: TestClient) -> dict[int, int]:
+    service = client.app.state.runtime.service  # type: ignore[attr-defined]
+    with service.sessions() as session:
+        rows = session.execute(select(FrameProposals.frame_id, FrameProposals.frame_ids))
+        return {int(i): len(blob) // 4 for i, blob in rows}
+
+
+def count_searches(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    from service.index import AtlasIndex
+
+    calls: list[int] = []
+    search = AtlasIndex.search
+
+    def counted(self: AtlasIndex, *args: object, **kwargs: object) -> object:
+        calls.append(1)
+        return search(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(AtlasIndex, "search", counted)
+    return calls
+
+
+def test_observed_frames_propose_without_a_search_and_answer_as_searched_ones(
+    app: TestClient, data_dir: Path, pipeline, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    """Each observation keeps its own search's matches; a later request of its robot reads them
+    instead of searching the index again, and answers exactly as if it had searched."""
+    places = [20, 21, 22, 23]
+    for i, place in enumerate(places):
+        observe(app, ambiguous(place, DECOYS[i]), 100.0 + i, sequence_length=0)
+    assert sorted(kept_proposals(app).values()) == [len(map_frame_ids(app))] * 4  # 40 < 50
+    newest = ambiguous(24, DECOYS[4])
+    fields = {"robot_id": "rover", "timestamp": "104", "sequence_length": "5"}
+    searches = count_searches(monkeypatch)
+    kept = query(app, pipeline, newest, **fields)
+    assert len(searches) == 1  # the newest frame's own search only (consistency reads them too)
+    with make_client(data_dir / "searched", pipeline) as other:  # the same frames, no proposals
+        wait_ready(other)
+        assert other.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert other.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        for place in range(PLACES):
+            insert(other, pipeline, features(G[place]), "mapper", float(place))
+        drive(other, pipeline, places)
+        searches.clear()
+        searched = query(other, pipeline, newest, **fields)
+        # every earlier frame searched again for the sequence, the last two for consistency
+        assert len(searches) == 1 + len(places) + 2
+    assert kept["sequence"] == searched["sequence"]
+    assert kept["sequence"]["frame_id"] == map_frame_ids(app)[24]
+
+
+def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
+    data_dir: Path, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """Every frame alone matches a decoy, so the single-frame answers never pass; the
+    sequence's margin over its rival does, and names the frame to close the loop with."""
+    with make_client(data_dir, pipeline, sequence_margin_min=3.0) as client:
+        wait_ready(client)
+        assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        ids = [insert(client, pipeline, features(G[p]), "mapper", float(p)) for p in range(PLACES)]
+        answers = [
+            observe(client, ambiguous(place, DECOYS[i]), 100.0 + i, sequence_length=5)
+            for i, place in enumerate([20, 21, 22, 23, 24])
+        ]
+    newest = answers[-1]
+    assert newest.match is not None and newest.match.frame_id == ids[DECOYS[4]]
+    assert newest.sequence is not None and newest.sequence.frame_id == ids[24]
+    assert newest.sequence.margin >= 3.0 and newest.sequence.passed
+    assert (newest.status, newest.loop_frame_id, newest.new_place) == ("loop", ids[24], False)
+    first = answers[0]  # one frame aligned: fewer than consistency_frames, never passed
+    assert first.sequence is not None and not first.sequence.passed
+    assert first.loop_frame_id is None

@@ -8,13 +8,16 @@ import pytest
 
 from service.ml.sequences import (
     ConsistencySettings,
+    Distinctiveness,
     Hypothesis,
     MapMoments,
     PlaceStatus,
+    SequenceMatch,
     SequenceSettings,
     Trajectories,
     consistent_scores,
     decide,
+    distinctiveness,
     match_sequence,
     score_candidates,
     sequence_starts,
@@ -281,3 +284,55 @@ def test_a_restarted_replica_rebuilt_from_stored_rows_answers_the_same() -> None
     ]
     np.testing.assert_allclose([m.score for m in first], [m.score for m in second], rtol=1e-9)
     assert first[0].reference == 200
+
+
+def _match(reference: int, score: float) -> SequenceMatch:
+    return SequenceMatch(reference, score, 5, 1.0, (reference,), 0.5, 1.0)
+
+
+def test_the_margin_is_over_the_best_rival_another_place() -> None:
+    """Candidates within the window are the best place shifted by a frame or two: never its
+    rival; the first one beyond it, or on another trajectory, is."""
+    two_routes = Trajectories.single(40, np.arange(40) == 20)  # frames 0-19 and 20-39
+    near = [_match(10, 9.0), _match(12, 8.5), _match(7, 8.0), _match(14, 6.0), _match(30, 5.0)]
+    assert distinctiveness(near, two_routes, window=3) == Distinctiveness(3.0, 14)
+    other_route = [_match(19, 9.0), _match(21, 8.0), _match(3, 2.0)]  # 21: the next route
+    assert distinctiveness(other_route, two_routes, window=3) == Distinctiveness(1.0, 21)
+    alone = [_match(10, 7.5), _match(11, 7.0)]  # no other place scored: the rival is chance (0)
+    assert distinctiveness(alone, two_routes, window=3) == Distinctiveness(7.5, None)
+    assert distinctiveness([], two_routes, window=3) is None
+
+
+def test_a_look_alike_stretch_has_a_small_margin_and_the_true_place_a_large_one() -> None:
+    """A route that repeats itself (a second lap of the same appearances) scores its two laps
+    alike: the sequence score is high on both, only the margin says the answer is unsure."""
+    rng = np.random.default_rng(3)
+    appearance, label = _aliased_route(rng, places=120, looks=8)
+    lap = _unit(appearance[label] + 0.1 * rng.normal(size=(120, 32)))
+    unique = _unit(rng.normal(size=(120, 32)))
+    reference = np.vstack([lap, lap + 0.0, unique])  # frames 0-119 and 120-239 look alike
+    reference = _unit(reference + 0.05 * rng.normal(size=reference.shape))
+    trajectories = Trajectories.single(360)
+    moments = MapMoments.of(reference)
+    settings = SequenceSettings(length=8, speeds=(1.0,), seeds=40)
+
+    def margin(query: np.ndarray) -> tuple[float, float]:
+        matches = match_sequence(
+            query,
+            _seeds(query, reference, 40),
+            reference.__getitem__,
+            trajectories,
+            moments,
+            settings,
+            top=None,
+        )
+        distinct = distinctiveness(matches, trajectories, window=3)
+        assert distinct is not None
+        return matches[0].score, distinct.margin
+
+    in_lap = _unit(lap[50:58] + 0.1 * rng.normal(size=(8, 32)))
+    in_unique = _unit(unique[50:58] + 0.1 * rng.normal(size=(8, 32)))
+    lap_score, lap_margin = margin(in_lap)
+    unique_score, unique_margin = margin(in_unique)
+    assert lap_score > 5.0 and unique_score > 5.0  # both look like confident sequences
+    assert lap_margin < 1.0 < 5.0 < unique_margin

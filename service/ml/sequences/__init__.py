@@ -10,6 +10,7 @@ from service.ml.sequences.consistency import (
     consistent_scores,
     decide,
 )
+from service.ml.sequences.distinctiveness import Distinctiveness, distinctiveness
 from service.ml.sequences.scoring import (
     MapMoments,
     SequenceMatch,
@@ -22,6 +23,7 @@ from service.ml.sequences.trajectories import Trajectories, carried_timestamps, 
 
 __all__ = [
     "ConsistencySettings",
+    "Distinctiveness",
     "Hypothesis",
     "MapMoments",
     "PlaceDecision",
@@ -32,6 +34,7 @@ __all__ = [
     "carried_timestamps",
     "consistent_scores",
     "decide",
+    "distinctiveness",
     "match_sequence",
     "propose_candidates",
     "score_candidates",

@@ -152,6 +152,8 @@ class SequenceMatch:
         speed: relative speed of the best alignment (negative: reverse traversal).
         aligned: map frame aligned with each query frame, oldest first; -1 where none.
         similarity: plain cosine of the newest query frame and ``reference``.
+        newest_z: that similarity standardised as the score's terms are: how much the newest
+            frame alone favours ``reference``.
     """
 
     reference: int
@@ -160,6 +162,7 @@ class SequenceMatch:
     speed: float
     aligned: tuple[int, ...]
     similarity: float
+    newest_z: float
 
 
 def propose_candidates(
@@ -305,6 +308,7 @@ def score_candidates(
                 speed=float(speeds[s]),
                 aligned=tuple(int(f) for f in aligned[c, s, ::-1]),
                 similarity=float(similarity[n - 1, newest_column[c]]),
+                newest_z=float(z_aligned[c, s, 0]),
             )
         )
     return matches

@@ -1,0 +1,55 @@
+"""How distinct a sequence match is: its score's margin over the best rival place.
+
+Look-alike stretches of route (forest, snow, a corridor) align along a trajectory as
+consistently as the true place does, so a high sequence score alone does not make a place
+certain: ranked by score, Nordland's winter sequences (L = 10) stay all right for only 2.5% of
+the queries. What marks a true revisit is the absence of a competitor. The *margin* is the best
+match's score minus the score of the best-scored candidate that is another place: on another
+trajectory, or further along the same one than ``window`` frames (the temporal-consistency
+check's notion of "another place", :class:`~service.ml.sequences.ConsistencySettings`
+``max_step``). Candidates within the window are the same hypothesis shifted by a frame or two
+and rise and fall with it. Scores are summed z-scores / sqrt(length), so the margin is in
+standard deviations on any atlas; ranked by it, Nordland's queries stay all right for 53%
+(benchmarks/RESULTS.md, sequences phase 4). This is SeqSLAM's uniqueness test, taken over the
+scored candidates instead of the whole map.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from service.ml.sequences.scoring import SequenceMatch
+from service.ml.sequences.trajectories import Trajectories
+
+
+@dataclass(frozen=True)
+class Distinctiveness:
+    """Attributes:
+    margin: the best match's score minus its best rival's (the rival counts as 0, chance
+        level, when no other place was scored).
+    rival: map frame of the best rival (None when there was none).
+    """
+
+    margin: float
+    rival: int | None
+
+
+def distinctiveness(
+    matches: Sequence[SequenceMatch], trajectories: Trajectories, window: int
+) -> Distinctiveness | None:
+    """The margin of ``matches[0]`` (matches best first, as :func:`score_candidates` returns
+    them) over the best match that is more than ``window`` frames away or on another
+    trajectory; None without matches."""
+    if not matches:
+        return None
+    best = matches[0]
+    sequence, rank = trajectories.sequence[best.reference], trajectories.rank[best.reference]
+    for match in matches[1:]:
+        other = match.reference
+        if (
+            trajectories.sequence[other] != sequence
+            or abs(trajectories.rank[other] - rank) > window
+        ):
+            return Distinctiveness(best.score - match.score, other)
+    return Distinctiveness(best.score, None)

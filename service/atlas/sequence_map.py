@@ -42,6 +42,7 @@ class SequenceMap:
         self.robots: list[str] = []
         self.timestamps: list[float | None] = []
         self.position: dict[int, int] = {}
+        self._by_id: tuple[np.ndarray, np.ndarray] | None = None  # ids sorted, their positions
         self.moments = MapMoments(dim)
         self.growth = GrowingTrajectories(max_gap_seconds)
 
@@ -73,6 +74,7 @@ class SequenceMap:
         for offset, row in enumerate(rows):
             self.position[row[0]] = self.count + offset
         self.count = needed
+        self._by_id = None
         in_order = len(rows) < 64 and all(self.growth.append(row[1], row[2]) for row in rows)
         self.robots += [row[1] for row in rows]
         self.timestamps += [row[2] for row in rows]
@@ -83,11 +85,22 @@ class SequenceMap:
             )
 
     def positions(self, frame_ids: np.ndarray | list[int]) -> np.ndarray:
-        """Positions of ``frame_ids`` (-1 for frames the map does not hold)."""
-        return np.array([self.position.get(int(i), -1) for i in frame_ids], dtype=np.int64)
+        """Positions of ``frame_ids`` (-1 for frames the map does not hold), by binary search
+        over the ids in order (a request looks up hundreds: the kept proposals)."""
+        wanted = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+        if not self.count or not len(wanted):
+            return np.full(len(wanted), -1, dtype=np.int64)
+        if self._by_id is None:
+            ids = self.ids
+            ordered = bool(np.all(ids[1:] > ids[:-1]))  # frames arrive in id order
+            order = np.arange(self.count) if ordered else np.argsort(ids, kind="stable")
+            self._by_id = (ids[order], order.astype(np.int64))
+        keys, order = self._by_id
+        at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+        return np.where(keys[at] == wanted, order[at], -1)
 
     def lookup(self, positions: np.ndarray) -> np.ndarray:
-        rows: np.ndarray = self._vectors[positions]
+        rows: np.ndarray = np.take(self._vectors, positions, axis=0)
         return rows
 
 

@@ -185,7 +185,7 @@ def _loopnet_methods(
     )
     service_method = evaluate_ranking(
         f"loopnet-{extractor}-uncalibrated",
-        f"LoopNet {name} α={preset_alpha:g} uncalibrated (service path today)",
+        f"LoopNet {name} α={preset_alpha:g} uncalibrated (an atlas before its first calibration)",
         UNCALIBRATED,
         result.ranking,
         dataset,
@@ -213,7 +213,8 @@ def _loopnet_methods(
         if alpha == preset_alpha:
             agree = float(np.mean(ranking.indices[:, 0] == result.ranking.indices[:, 0]))
             service_method.details["top1_agreement_with_ablation_path"] = agree
-            continue
+            if alpha != 0.0:  # the global branch alone keeps its row: what LoopNet must beat
+                continue
         methods.append(
             evaluate_ranking(
                 method_name,
@@ -322,10 +323,11 @@ def _target(methods: Sequence[MethodResult]) -> dict[str, Any]:
     loopnet = next((m for m in methods if m.kind == "loopnet"), None) or next(
         m for m in methods if m.kind == UNCALIBRATED
     )
-    rivals = [
+    rivals = [  # single frames against single frames: sequence rows compete among themselves
         m
         for m in methods
-        if m.kind == "baseline" or m.name.startswith("global-only") or "-local-only" in m.name
+        if (m.kind == "baseline" or m.name.startswith("global-only") or "-local-only" in m.name)
+        and "+seq" not in m.name
     ]
     if not rivals:
         return {"verdict": "no baseline or single-branch ablation ran", "met": None}

@@ -21,7 +21,10 @@ def create_job(session: Session, *, atlas_id: int, kind: str, params: dict[str, 
     atlas's next model version."""
     busy = session.scalar(select(Job).where(Job.atlas_id == atlas_id, Job.status.in_(ACTIVE)))
     if busy is not None:
-        raise Conflict(f"a {kind} job for this atlas is already {busy.status} (job {busy.id})")
+        raise Conflict(
+            f"a {busy.kind} job for this atlas is already {busy.status} (job {busy.id}); "
+            "submit again when it has finished, or cancel it"
+        )
     job = Job(
         atlas_id=atlas_id,
         kind=kind,

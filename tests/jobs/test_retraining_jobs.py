@@ -117,7 +117,9 @@ def query(client: TestClient, place: int) -> dict:
 
 @pytest.fixture
 def app_client(tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
-    settings = make_settings(tmp_path / "data", sync_seconds=0.2)
+    # no automatic calibration: the atlas stays at its initial version until a retraining job
+    # (the milestone calibration has its own tests in test_calibration_jobs.py)
+    settings = make_settings(tmp_path / "data", sync_seconds=0.2, calibration_milestones="")
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         yield client
@@ -183,6 +185,7 @@ def test_retraining_with_a_redis_queue(
     settings = make_settings(
         tmp_path / "data",
         sync_seconds=0.2,
+        calibration_milestones="",  # as in app_client
         redis_url=redis["LOOPNET_REDIS_URL"],
         queue_name=redis["LOOPNET_QUEUE_NAME"],
     )

@@ -9,8 +9,10 @@ fit ``flat_max_bytes``, then an inverted file with scalar-quantised codes
 (``IndexIVFScalarQuantizer``) whose precision is the finest that fits the per-frame memory
 budget. The inverted file is trained on the atlas's own vectors when the atlas crosses that
 size and retrained when it has grown about fourfold since (its list count no longer fits its
-size), in a background thread while the current index keeps serving. Both types keep what the
-service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
+size), in a background thread while the current index keeps serving. A bulk load into an empty
+index (re-embedding an atlas) trains the final inverted file first, on a sample of the frames
+(:meth:`AtlasIndex.training_ids`, :meth:`AtlasIndex.prepare`), so its adds go straight into the
+lists: no exact stage, no rebuild. Both types keep what the service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
 through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
 lists hold too few of them).
 """
@@ -115,6 +117,7 @@ class AtlasIndex:
         # Every add and removal, numbered: caches of the held vectors follow them cheaply.
         self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
         self._journal_start = 0  # generation of the journal's first entry
+        self._unjournaled = False  # inside a bulk block that began on an empty index
 
     JOURNAL_KEPT = 1024
 
@@ -127,13 +130,17 @@ class AtlasIndex:
         self, generation: int
     ) -> list[tuple[int, np.ndarray, np.ndarray | None]] | None:
         """The adds (+1, ids, the vectors added) and removals (-1, ids, None) after
-        ``generation``, oldest first; None when the journal no longer reaches back that far."""
+        ``generation``, oldest first; None when the journal no longer reaches back that far
+        (also across a bulk load into an empty index: see :meth:`bulk`)."""
         with self._lock:
             if generation < self._journal_start or generation > self.generation:
                 return None
             return list(self._journal[generation - self._journal_start :])
 
     def _note(self, sign: int, ids: np.ndarray, vectors: np.ndarray | None = None) -> None:
+        """Journal an add or removal (a copy: the caller's arrays may change)."""
+        if self._unjournaled:
+            return
         self._journal.append((sign, ids.copy(), None if vectors is None else vectors.copy()))
         if len(self._journal) > self.JOURNAL_KEPT:
             drop = len(self._journal) - self.JOURNAL_KEPT // 2
@@ -216,10 +223,13 @@ class AtlasIndex:
             if not new.any():
                 return 0
             new_ids = np.asarray(ids, dtype=np.int64)[new]
-            self._regrow(new_ids, vectors[new])
+            added = vectors if new.all() else vectors[new]
+            if not self._bulk and self._preparable():  # one large add (a restore): no exact stage
+                self._prepare_from(new_ids, added)
+            self._regrow(new_ids, added)
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
-            self._note(1, new_ids, vectors[new])
+            self._note(1, new_ids, added)
             return int(new.sum())
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
@@ -238,8 +248,8 @@ class AtlasIndex:
             self._note(-1, ids)
             if self._log is not None:
                 self._log.append(("remove", ids, None))
-            elif self._ivf() is not None and self.size <= self.policy.flat_max(self.dim) // 2:
-                self._start_rebuild(self.size)  # shrunk well below the threshold: exact again
+            elif not self._bulk:
+                self._regrow_if_due()
             return removed
 
     def search(
@@ -310,7 +320,7 @@ class AtlasIndex:
         file, or more lists), start rebuilding it from the held vectors."""
         self._index.add_with_ids(vectors, ids)
         if self._log is not None:
-            self._log.append(("add", ids, vectors))
+            self._log.append(("add", ids, vectors.copy()))
         elif not self._bulk:
             self._regrow_if_due()
 
@@ -319,16 +329,70 @@ class AtlasIndex:
         """Adds inside go into the current index without rebuilding it; leaving the block
         rebuilds once, to the type the final size calls for. A bulk load (re-embedding an
         atlas) then trains k-means and assigns its vectors once, at the final size, instead of
-        at every size threshold it passes (3 rebuilds of all vectors on the way to 1M)."""
+        at every size threshold it passes (3 rebuilds of all vectors on the way to 1M); after
+        :meth:`prepare` it does not rebuild at all.
+
+        A block that begins on an empty index does not journal its changes (a copy of every
+        vector, for nobody: no cache follows an empty index); leaving it restarts the journal,
+        so :meth:`changes_since` any earlier generation is None and a cache reloads."""
         with self._lock:
+            if not self._bulk and self.size == 0 and self._log is None:
+                self._unjournaled = True
             self._bulk += 1
         try:
             yield
         finally:
             with self._lock:
                 self._bulk -= 1
-                if not self._bulk and self._log is None:
-                    self._regrow_if_due()
+                if not self._bulk:
+                    self._end_bulk()
+
+    def _end_bulk(self) -> None:
+        if self._unjournaled:
+            self._unjournaled = False
+            self._journal_start, self._journal = self.generation + 1, []
+        if self._log is None:
+            self._regrow_if_due()
+
+    def training_ids(self, ids: np.ndarray) -> np.ndarray | None:
+        """The frames of ``ids`` whose vectors train the inverted file for that many frames
+        (see :meth:`prepare`), or None when they are few enough for exact search."""
+        ids = np.asarray(ids, dtype=np.int64)
+        nlist = self._wanted_nlist(len(ids))
+        return None if nlist is None else ids[self._training_rows(ids, nlist)]
+
+    def prepare(self, size: int, sample: np.ndarray) -> bool:
+        """Make an empty index the inverted file ``size`` frames call for, trained on
+        ``sample`` (the vectors of :meth:`training_ids`), so a bulk load's adds go straight into
+        its lists: no exact stage to read back, no rebuild. Returns False, changing nothing,
+        when the index holds frames, is rebuilding or is prepared already, when ``size``
+        frames fit exact search, or when ``sample`` has fewer vectors than lists."""
+        with self._lock:
+            nlist = self._wanted_nlist(size)
+            if not self._preparable() or nlist is None or len(sample) < nlist:
+                return False
+        target = self._ivf_like(size)
+        target.train(np.ascontiguousarray(sample, dtype=np.float32))  # unlocked, but in add()
+        with self._lock:
+            if not self._preparable():  # frames came meanwhile: they go the usual way
+                return False
+            self._index = target
+            return True
+
+    def _preparable(self) -> bool:
+        return self.size == 0 and self._log is None and self.exact
+
+    def _prepare_from(self, ids: np.ndarray, vectors: np.ndarray) -> None:
+        """:meth:`prepare` for ``ids`` about to be added to an empty index in one call."""
+        nlist = self._wanted_nlist(len(ids))
+        if nlist is not None:
+            self.prepare(len(ids), vectors[self._training_rows(ids, nlist)])
+
+    def _training_rows(self, ids: np.ndarray, nlist: int) -> np.ndarray:
+        """Rows of the k-means sample for ``nlist`` lists: evenly spaced in id order (the same
+        sample however the frames arrive), at least ``train_per_list`` a list."""
+        step = max(1, len(ids) // (self.policy.train_per_list * nlist))
+        return np.argsort(ids, kind="stable")[::step]
 
     def _wanted_nlist(self, size: int) -> int | None:
         if size <= self.policy.flat_max(self.dim):
@@ -361,8 +425,7 @@ class AtlasIndex:
         try:
             if not target.is_trained:
                 nlist = faiss.extract_index_ivf(target).nlist
-                step = max(1, len(ids) // (self.policy.train_per_list * nlist))
-                target.train(vectors[::step])  # evenly spaced in id order: deterministic
+                target.train(vectors[self._training_rows(ids, nlist)])
             target.add_with_ids(vectors, ids)
         except Exception:
             log.exception("index rebuild failed; the current index keeps serving")
@@ -380,10 +443,17 @@ class AtlasIndex:
             self._regrow_if_due()  # the atlas may have grown past the next threshold meanwhile
 
     def _regrow_if_due(self) -> None:
+        """Rebuild when the size calls for another type: exact to inverted file, twice the
+        lists, or exact again once shrunk to half the threshold (so a size near it never
+        flips back and forth)."""
         ivf, wanted = self._ivf(), self._wanted_nlist(self.size)
-        if (ivf is None and wanted is not None) or (
-            ivf is not None and wanted is not None and wanted >= 2 * ivf.nlist
-        ):
+        if ivf is None:
+            due = wanted is not None
+        elif wanted is None:
+            due = self.size <= self.policy.flat_max(self.dim) // 2
+        else:
+            due = wanted >= 2 * ivf.nlist
+        if due:
             self._start_rebuild(self.size)
 
     def wait_rebuilt(self) -> None:

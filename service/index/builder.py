@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 
+import numpy as np
 from sqlalchemy.orm import Session
 
 from service.index import AtlasIndex
@@ -16,6 +17,7 @@ from service.storage.feature_store import (
     concat_vectors,
     iter_stored_descriptors,
     iter_stored_vectors,
+    stored_frame_ids,
 )
 
 CHUNK = 10_000  # frame ids per IN (...) query: SQLite allows 32,766 variables
@@ -68,15 +70,38 @@ def add_stored_frames(
     """Embed the atlas's stored frames (all, or ``frame_ids``) and add them to ``index``.
 
     Returns how many frames were added; ``progress`` gets the running count. ``precision``
-    ("auto", "fp32", "bf16") is the embedding's matrix arithmetic (see ``embed_vectors``).
+    ("auto", "fp32", "bf16") is the embedding's matrix arithmetic (see ``embed_vectors``). An
+    empty index is first trained for the final size on a sample of the frames
+    (:meth:`AtlasIndex.prepare`), so the frames go straight into its inverted lists.
     """
     resolved = resolve_precision(precision)
+
+    def embedded(ids: Sequence[int] | None) -> Iterator[tuple[StoredVectors, np.ndarray]]:
+        for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=ids):
+            yield batch, embed_vectors(model.heads, batch.local, batch.global_, resolved)
+
     added = 0
     with index.bulk():  # one rebuild at the final size, not one per threshold passed
-        for batch in iter_model_inputs(session, atlas_id, model.calibration, frame_ids=frame_ids):
-            embeddings = embed_vectors(model.heads, batch.local, batch.global_, resolved)
+        if index.size == 0:
+            wanted = stored_frame_ids(session, atlas_id) if frame_ids is None else frame_ids
+            _prepare(index, np.asarray(wanted, dtype=np.int64), embedded)
+        for batch, embeddings in embedded(frame_ids):
             added += index.add(batch.ids, embeddings, batch.robots)
             if progress is not None:
                 progress(added)
     index.wait_rebuilt()  # a bulk build ends with the index type its size calls for
     return added
+
+
+def _prepare(
+    index: AtlasIndex,
+    wanted: np.ndarray,
+    embedded: Callable[[Sequence[int]], Iterator[tuple[StoredVectors, np.ndarray]]],
+) -> None:
+    """Train an empty ``index`` for the ``wanted`` frames on the embeddings of its sample."""
+    sample = index.training_ids(wanted)
+    if sample is None:
+        return
+    vectors = [embeddings for _, embeddings in embedded(sample.tolist())]
+    if vectors:
+        index.prepare(len(wanted), np.concatenate(vectors))

@@ -31,6 +31,8 @@ from typing import Any
 import faiss
 import numpy as np
 
+from service.index.assignment import ListAssigner
+
 log = logging.getLogger(__name__)
 
 
@@ -109,6 +111,7 @@ class AtlasIndex:
         if self._index.d != dim:
             raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
         self._robot_of: dict[int, str] = {}
+        self._assigner: ListAssigner | None = None  # the inverted file's, made on first use
         self._lock = threading.RLock()
         # While a rebuild runs: the adds and removals to replay on the new index.
         self._log: list[tuple[str, np.ndarray, np.ndarray | None]] | None = None
@@ -155,16 +158,16 @@ class AtlasIndex:
     def stored_like(self, ids: np.ndarray, added: np.ndarray) -> np.ndarray:
         """What :meth:`vectors` returns for ``ids`` just added as ``added``, without the
         inverted file's id map over every frame: each frame is found in the list its added
-        vector was assigned to."""
+        vector was assigned to (the same :class:`ListAssigner` assigns it again)."""
         ids = np.asarray(ids, dtype=np.int64)
         added = np.ascontiguousarray(added, dtype=np.float32)
         with self._lock:
-            ivf = self._ivf()
-            if ivf is None:
+            ivf, assigner = self._ivf(), self._current_assigner()
+            if ivf is None or assigner is None:
                 return added.copy()  # the flat index keeps the vectors themselves
-            _, lists = ivf.quantizer.search(added, 1)
+            lists = assigner.assign(added)
             out = np.empty_like(added)
-            for row, (frame, list_no) in enumerate(zip(ids, lists[:, 0], strict=True)):
+            for row, (frame, list_no) in enumerate(zip(ids, lists, strict=True)):
                 size = ivf.invlists.list_size(int(list_no))
                 held = faiss.rev_swig_ptr(ivf.invlists.get_ids(int(list_no)), size)
                 where = np.flatnonzero(held == frame)
@@ -318,7 +321,7 @@ class AtlasIndex:
     def _regrow(self, ids: np.ndarray, vectors: np.ndarray) -> None:
         """Add ``vectors``; when the atlas's size calls for another index (exact to inverted
         file, or more lists), start rebuilding it from the held vectors."""
-        self._index.add_with_ids(vectors, ids)
+        _add(self._index, ids, vectors, self._current_assigner())
         if self._log is not None:
             self._log.append(("add", ids, vectors.copy()))
         elif not self._bulk:
@@ -426,7 +429,8 @@ class AtlasIndex:
             if not target.is_trained:
                 nlist = faiss.extract_index_ivf(target).nlist
                 target.train(vectors[self._training_rows(ids, nlist)])
-            target.add_with_ids(vectors, ids)
+            assigner = _assigner_of(target)
+            _add(target, ids, vectors, assigner)
         except Exception:
             log.exception("index rebuild failed; the current index keeps serving")
             with self._lock:
@@ -435,12 +439,19 @@ class AtlasIndex:
         with self._lock:
             for operation, op_ids, op_vectors in self._log or []:
                 if operation == "add":
-                    target.add_with_ids(op_vectors, op_ids)
+                    assert op_vectors is not None
+                    _add(target, op_ids, op_vectors, assigner)
                 else:
                     target.remove_ids(op_ids)
-            self._index, self._log = target, None
+            self._index, self._assigner, self._log = target, assigner, None
             log.info("index of %d frames rebuilt as %s", target.ntotal, self.describe())
             self._regrow_if_due()  # the atlas may have grown past the next threshold meanwhile
+
+    def _current_assigner(self) -> ListAssigner | None:
+        """The current inverted file's assigner (None while the index is flat)."""
+        if self._assigner is None or self._assigner.index is not self._index:
+            self._assigner = _assigner_of(self._index)
+        return self._assigner
 
     def _regrow_if_due(self) -> None:
         """Rebuild when the size calls for another type: exact to inverted file, twice the
@@ -516,6 +527,21 @@ class AtlasIndex:
         with self._lock:
             ids = self.ids()
             return ids, self._reconstruct(ids)
+
+
+def _assigner_of(index: Any) -> ListAssigner | None:
+    return ListAssigner(index) if isinstance(index, faiss.IndexIVF) else None
+
+
+def _add(index: Any, ids: np.ndarray, vectors: np.ndarray, assigner: ListAssigner | None) -> None:
+    """Add to ``index``; the lists of an inverted file are ``assigner``'s (bf16 scoring)."""
+    if assigner is None:
+        index.add_with_ids(vectors, ids)
+        return
+    ids = np.ascontiguousarray(ids, dtype=np.int64)
+    vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+    lists = assigner.assign(vectors)
+    index.add_core(len(ids), faiss.swig_ptr(vectors), faiss.swig_ptr(ids), faiss.swig_ptr(lists))
 
 
 def _flat(dim: int) -> Any:

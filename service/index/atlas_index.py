@@ -12,8 +12,9 @@ size and retrained when it has grown about fourfold since (its list count no lon
 size), in a background thread while the current index keeps serving. A bulk load into an empty
 index (re-embedding an atlas) trains the final inverted file first, on a sample of the frames
 (:meth:`AtlasIndex.training_ids`, :meth:`AtlasIndex.prepare`), so its adds go straight into the
-lists: no exact stage, no rebuild. Both types keep what the service relies on: ids = frame ids, removal, idempotent adds, save/load, and filtered search
-through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
+lists: no exact stage, no rebuild. Vectors join their lists by bf16 scoring where the CPU has
+it (:mod:`service.index.assignment`). Both types keep what the service relies on: ids = frame
+ids, removal, idempotent adds, save/load, and filtered search through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
 lists hold too few of them).
 """
 
@@ -375,7 +376,8 @@ class AtlasIndex:
             if not self._preparable() or nlist is None or len(sample) < nlist:
                 return False
         target = self._ivf_like(size)
-        target.train(np.ascontiguousarray(sample, dtype=np.float32))  # unlocked, but in add()
+        # k-means outside the lock (but for add()'s one large add: nothing to serve yet)
+        target.train(np.ascontiguousarray(sample, dtype=np.float32))
         with self._lock:
             if not self._preparable():  # frames came meanwhile: they go the usual way
                 return False

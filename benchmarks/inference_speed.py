@@ -17,6 +17,7 @@ import json
 import os
 import platform
 import statistics
+import threading
 import time
 from collections.abc import Callable, Iterator
 from functools import partial
@@ -163,20 +164,25 @@ READ_BATCH = 4096  # rows a batch, as the feature store reads them (iter_stored_
 
 
 class StepClock:
-    """Wall and CPU seconds of a run's steps, summed per step name."""
+    """Wall and CPU seconds of a run's steps, summed per step name. A step's CPU is its
+    thread's (steps of two threads overlap); ``whole`` is the process's."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, dict[str, float]] = {}
+        self._lock = threading.Lock()
 
     @contextlib.contextmanager
-    def step(self, name: str) -> Iterator[None]:
-        start, start_cpu = time.perf_counter(), time.process_time()
+    def step(self, name: str, whole: bool = False) -> Iterator[None]:
+        cpu = time.process_time if whole else time.thread_time
+        start, start_cpu = time.perf_counter(), cpu()
         try:
             yield
         finally:
-            totals = self.seconds.setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0})
-            totals["wall_s"] += time.perf_counter() - start
-            totals["cpu_s"] += time.process_time() - start_cpu
+            wall, used = time.perf_counter() - start, cpu() - start_cpu
+            with self._lock:
+                totals = self.seconds.setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0})
+                totals["wall_s"] += wall
+                totals["cpu_s"] += used
 
 
 def reembedding(
@@ -184,8 +190,10 @@ def reembedding(
 ) -> dict[str, Any]:
     """Re-embedding ``frames`` stored frames in the feature store's batches, fp32 against bf16
     matrix products; then, optionally, the bf16 re-embedding into an empty size-chosen index
-    (``policy``) as ``add_stored_frames`` fills one (:func:`fill_empty_index`)."""
+    (``policy``) by ``fill_index``, the loop of ``add_stored_frames``, its database reads
+    replaced by in-memory vectors (not timed)."""
     from service.index import AtlasIndex, IndexPolicy
+    from service.index.builder import fill_index
     from service.ml.heads import HeadsConfig, LoopNetHeads
     from service.ml.pipeline import embed_vectors
 
@@ -208,7 +216,8 @@ def reembedding(
             return local[start : start + len(ids)], global_[start : start + len(ids)]
         return local[ids % chunk], global_[ids % chunk]
 
-    batches = [np.arange(o, min(o + READ_BATCH, frames)) for o in range(0, frames, READ_BATCH)]
+    every = np.arange(frames)
+    batches = [every[o : o + READ_BATCH] for o in range(0, frames, READ_BATCH)]
     out: dict[str, Any] = {"frames": frames, "embed_dim": embed_dim, "batch": READ_BATCH}
     clock = StepClock()
     for precision in ("fp32", "bf16"):
@@ -221,48 +230,33 @@ def reembedding(
     cosine = (fp32 * bf16).sum(1)
     out["bf16_cosine_min"] = float(cosine.min())
     out["bf16_cosine_mean"] = float(cosine.mean())
-    if with_index:
-        index = AtlasIndex(embed_dim, policy=policy or IndexPolicy(background=False))
-        clock = StepClock()
-        with clock.step("total"):
-            fill_empty_index(
-                index,
-                batches,
-                inputs,
-                lambda rows: embed_vectors(heads, *rows, "bf16"),
-                clock,
-            )
-        out["index"] = {"type": index.describe(), **clock.seconds}
-    return out
+    if not with_index:
+        return out
+    clock = StepClock()
+    robots = ["r"] * READ_BATCH
 
-
-def fill_empty_index(
-    index: Any,
-    batches: list[np.ndarray],
-    inputs: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-    embed: Callable[[tuple[np.ndarray, np.ndarray]], np.ndarray],
-    clock: StepClock,
-) -> None:
-    """``add_stored_frames`` into an empty ``index``, its database reads replaced by
-    ``inputs`` (untimed): the training sample embedded and the inverted file trained first,
-    then each batch embedded and added."""
-    every = np.concatenate(batches)
-    robots = ["r"] * max(len(ids) for ids in batches)
-    with index.bulk():
-        sample = index.training_ids(every)
-        if sample is not None:
-            rows = inputs(sample)
+    def embedded(ids: Any) -> Iterator[tuple[np.ndarray, np.ndarray, list[str]]]:
+        wanted = batches if ids is None else np.array_split(ids, -(-len(ids) // READ_BATCH))
+        for batch in wanted:
+            rows = inputs(np.asarray(batch))
             with clock.step("embed"):
-                vectors = embed(rows)
+                embeddings = embed_vectors(heads, *rows, "bf16")
+            yield np.asarray(batch), embeddings, robots[: len(batch)]
+
+    class TimedIndex(AtlasIndex):
+        def prepare(self, size: int, sample: np.ndarray) -> bool:
             with clock.step("train"):
-                index.prepare(len(every), vectors)
-        for ids in batches:
-            rows = inputs(ids)
-            with clock.step("embed"):
-                embedded = embed(rows)
+                return super().prepare(size, sample)
+
+        def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> int:
             with clock.step("add"):
-                index.add(ids, embedded, robots[: len(ids)])
-    index.wait_rebuilt()
+                return super().add(ids, vectors, robots)
+
+    index = TimedIndex(embed_dim, policy=policy or IndexPolicy(background=False))
+    with clock.step("total", whole=True):
+        fill_index(index, embedded, None, lambda: every)
+    out["index"] = {"type": index.describe(), **clock.seconds}
+    return out
 
 
 def markdown(report: dict[str, Any]) -> str:

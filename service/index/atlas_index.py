@@ -14,8 +14,8 @@ index (re-embedding an atlas) trains the final inverted file first, on a sample 
 (:meth:`AtlasIndex.training_ids`, :meth:`AtlasIndex.prepare`), so its adds go straight into the
 lists: no exact stage, no rebuild. Vectors join their lists by bf16 scoring where the CPU has
 it (:mod:`service.index.assignment`). Both types keep what the service relies on: ids = frame
-ids, removal, idempotent adds, save/load, and filtered search through an ``IDSelector`` (with an exhaustive pass over the filtered frames when the probed
-lists hold too few of them).
+ids, removal, idempotent adds, save/load, and filtered search through an ``IDSelector`` (with
+an exhaustive pass over the filtered frames when the probed lists hold too few of them).
 """
 
 from __future__ import annotations

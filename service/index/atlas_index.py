@@ -68,7 +68,11 @@ class IndexPolicy:
             (benchmarks/RESULTS.md, *Re-embedding + index rebuild at 1M*).
         train_per_list: training vectors per list (k-means sample, taken in id order; faiss
             warns below 39).
-        kmeans_iterations: k-means iterations when (re)training.
+        kmeans_iterations: k-means iterations when (re)training. 5: at 1M frames (256-d,
+            synthetic, 1,000 queries, nprobe 32) recall@1 1.000 and recall@5 0.9996, as with
+            10 (1.000, 0.9998), for half the training (1.2 against 2.3 CPU s); 3 gave 0.999.
+            At 4 probes the centroids' quality shows, within k-means' own noise: recall@1
+            0.940 (10 iterations), 0.918 (5), 0.934 (3).
         background: train and fill a new index in a thread while the old one serves (the
             service); off, the add that crosses a threshold waits for it.
     """
@@ -78,7 +82,7 @@ class IndexPolicy:
     nprobe: int = 32
     lists_per_sqrt: float = 1.0
     train_per_list: int = MIN_PER_LIST + 1
-    kmeans_iterations: int = 10
+    kmeans_iterations: int = 5
     background: bool = True
 
     def flat_max(self, dim: int) -> int:

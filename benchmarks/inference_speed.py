@@ -12,12 +12,14 @@ Writes ``inference_speed.json`` and ``inference_speed.md`` into ``--out``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
 import statistics
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -158,13 +160,40 @@ def preset_section(frames: list[np.ndarray], precision: Precision, repeats: int)
     return rows
 
 
+READ_BATCH = 4096  # rows a batch, as the feature store reads them (iter_stored_vectors)
+
+
+class StepClock:
+    """Wall and CPU seconds of a run's steps, summed per step name. A step's CPU is its
+    thread's (steps of two threads overlap); ``whole`` is the process's."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, dict[str, float]] = {}
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def step(self, name: str, whole: bool = False) -> Iterator[None]:
+        cpu = time.process_time if whole else time.thread_time
+        start, start_cpu = time.perf_counter(), cpu()
+        try:
+            yield
+        finally:
+            wall, used = time.perf_counter() - start, cpu() - start_cpu
+            with self._lock:
+                totals = self.seconds.setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0})
+                totals["wall_s"] += wall
+                totals["cpu_s"] += used
+
+
 def reembedding(
     frames: int, with_index: bool, embed_dim: int, policy: Any = None
 ) -> dict[str, Any]:
-    """Re-embedding ``frames`` stored frames in 100k chunks, fp32 against bf16 matrix work;
-    then, optionally, the size-chosen index (``policy``) built from the bf16 embeddings in one
-    bulk load, as ``add_stored_frames`` builds it."""
+    """Re-embedding ``frames`` stored frames in the feature store's batches, fp32 against bf16
+    matrix products; then, optionally, the bf16 re-embedding into an empty size-chosen index
+    (``policy``) by ``fill_index``, the loop of ``add_stored_frames``, its database reads
+    replaced by in-memory vectors (not timed)."""
     from service.index import AtlasIndex, IndexPolicy
+    from service.index.builder import fill_index
     from service.ml.heads import HeadsConfig, LoopNetHeads
     from service.ml.pipeline import embed_vectors
 
@@ -174,40 +203,59 @@ def reembedding(
         for parameter in heads.parameters():
             parameter.add_(0.05 * torch.randn(parameter.shape, generator=generator))
     rng = np.random.default_rng(1)
-    chunk = 100_000
+    chunk = 25 * READ_BATCH  # distinct stored frames, repeated up to ``frames``
     local = rng.standard_normal((chunk, 128), dtype=np.float32)
     global_ = np.abs(rng.standard_normal((chunk, 1280), dtype=np.float32))
     local /= np.linalg.norm(local, axis=1, keepdims=True)
     global_ /= np.linalg.norm(global_, axis=1, keepdims=True)
-    out: dict[str, Any] = {"frames": frames, "embed_dim": embed_dim}
-    embedded: dict[str, np.ndarray] = {}
+
+    def inputs(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The stored vectors of frames ``ids`` (ascending; views for a batch)."""
+        start = int(ids[0]) % chunk
+        if ids[-1] - ids[0] == len(ids) - 1 and start + len(ids) <= chunk:
+            return local[start : start + len(ids)], global_[start : start + len(ids)]
+        return local[ids % chunk], global_[ids % chunk]
+
+    every = np.arange(frames)
+    batches = [every[o : o + READ_BATCH] for o in range(0, frames, READ_BATCH)]
+    out: dict[str, Any] = {"frames": frames, "embed_dim": embed_dim, "batch": READ_BATCH}
+    clock = StepClock()
     for precision in ("fp32", "bf16"):
-        wall = cpu = 0.0
-        for _ in range(0, frames, chunk):
-            start, start_cpu = time.perf_counter(), time.process_time()
-            embedded[precision] = embed_vectors(heads, local, global_, precision)  # type: ignore[arg-type]
-            wall += time.perf_counter() - start
-            cpu += time.process_time() - start_cpu
-        out[f"embed_{precision}"] = {"wall_s": wall, "cpu_s": cpu}
-    cosine = (embedded["fp32"] * embedded["bf16"]).sum(1)
+        for ids in batches:
+            rows = inputs(ids)
+            with clock.step(f"embed_{precision}"):
+                embed_vectors(heads, *rows, precision)  # type: ignore[arg-type]
+    out.update(clock.seconds)
+    fp32, bf16 = (embed_vectors(heads, local, global_, p) for p in ("fp32", "bf16"))
+    cosine = (fp32 * bf16).sum(1)
     out["bf16_cosine_min"] = float(cosine.min())
     out["bf16_cosine_mean"] = float(cosine.mean())
-    if with_index:
-        index = AtlasIndex(
-            embedded["bf16"].shape[1], policy=policy or IndexPolicy(background=False)
-        )
-        start, start_cpu = time.perf_counter(), time.process_time()
-        with index.bulk():
-            for offset in range(0, frames, chunk):
-                ids = np.arange(offset, offset + chunk)
-                index.add(ids, embedded["bf16"], ["r"] * chunk)
-        index.wait_rebuilt()
-        out["index"] = {
-            "wall_s": time.perf_counter() - start,
-            "cpu_s": time.process_time() - start_cpu,
-            "type": index.describe(),
-        }
-        out["total_bf16"] = {k: out["embed_bf16"][k] + out["index"][k] for k in ("wall_s", "cpu_s")}
+    if not with_index:
+        return out
+    clock = StepClock()
+    robots = ["r"] * READ_BATCH
+
+    def embedded(ids: Any) -> Iterator[tuple[np.ndarray, np.ndarray, list[str]]]:
+        wanted = batches if ids is None else np.array_split(ids, -(-len(ids) // READ_BATCH))
+        for batch in wanted:
+            rows = inputs(np.asarray(batch))
+            with clock.step("embed"):
+                embeddings = embed_vectors(heads, *rows, "bf16")
+            yield np.asarray(batch), embeddings, robots[: len(batch)]
+
+    class TimedIndex(AtlasIndex):
+        def prepare(self, size: int, sample: np.ndarray) -> bool:
+            with clock.step("train"):
+                return super().prepare(size, sample)
+
+        def add(self, ids: np.ndarray, vectors: np.ndarray, robots: list[str]) -> int:
+            with clock.step("add"):
+                return super().add(ids, vectors, robots)
+
+    index = TimedIndex(embed_dim, policy=policy or IndexPolicy(background=False))
+    with clock.step("total", whole=True):
+        fill_index(index, embedded, None, lambda: every)
+    out["index"] = {"type": index.describe(), **clock.seconds}
     return out
 
 
@@ -251,17 +299,25 @@ def markdown(report: dict[str, Any]) -> str:
     if "reembedding" in report:
         r = report["reembedding"]
         lines.append(
-            f"\nRe-embedding {r['frames']} frames (embed_dim {r['embed_dim']}): fp32 {r['embed_fp32']['wall_s']:.1f} s wall / "
-            f"{r['embed_fp32']['cpu_s']:.1f} s CPU; bf16 {r['embed_bf16']['wall_s']:.1f} / "
-            f"{r['embed_bf16']['cpu_s']:.1f} s (cosine to fp32: min {r['bf16_cosine_min']:.5f})."
+            f"\nRe-embedding {r['frames']} frames (embed_dim {r['embed_dim']}, batches of "
+            f"{r['batch']}): fp32 {_seconds(r['embed_fp32'])}; bf16 {_seconds(r['embed_bf16'])} "
+            f"(cosine to fp32: min {r['bf16_cosine_min']:.5f})."
         )
         if "index" in r:
+            steps = r["index"]
             lines.append(
-                f"Index build ({r['index']['type']}): {r['index']['wall_s']:.1f} s wall / "
-                f"{r['index']['cpu_s']:.1f} s CPU; bf16 re-embedding + index: "
-                f"{r['total_bf16']['wall_s']:.1f} s wall / {r['total_bf16']['cpu_s']:.1f} s CPU."
+                f"bf16 re-embedding into an empty index ({steps['type']}): "
+                + "; ".join(f"{name} {_seconds(steps[name])}" for name in STEPS if name in steps)
+                + "."
             )
     return "\n".join(lines) + "\n"
+
+
+STEPS = ("embed", "train", "add", "total")
+
+
+def _seconds(step: dict[str, float]) -> str:
+    return f"{step['wall_s']:.1f} s wall / {step['cpu_s']:.1f} s CPU"
 
 
 def main() -> None:

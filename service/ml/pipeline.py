@@ -4,6 +4,7 @@ evaluation harness share."""
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -100,23 +101,55 @@ def embed_vectors(
     return embedded.numpy().astype(np.float32)
 
 
+# Rows embedded at a time in bf16: a block's converted inputs and products stay in the cache
+# (1M frames at embed_dim 256: 3.4 CPU s in blocks of 2,048 rows, 5.9 s in chunks of 100k).
+EMBED_BLOCK = 2048
+
+
 def embed_bf16(heads: LoopNetHeads, local: torch.Tensor, global_: torch.Tensor) -> torch.Tensor:
     """``heads.embed`` with its matrix products in bf16 (float32 accumulation and element-wise
-    steps): bf16 element-wise arithmetic on the CPU is slower than the products it saves."""
+    steps): bf16 element-wise arithmetic on the CPU is slower than the products it saves.
+
+    Block by block (:data:`EMBED_BLOCK` rows), D and R are converted side by side into one bf16
+    block and fused by one product with the stacked, alpha-weighted projections."""
+    fused_weight, first, last, bias = _bf16_weights(heads)
+    out = torch.empty((len(local), heads.config.fused_dim), dtype=torch.float32)
+    block = torch.empty((min(EMBED_BLOCK, len(local)), fused_weight.shape[0]), dtype=torch.bfloat16)
+    split = local.shape[1]
+    for start in range(0, len(local), EMBED_BLOCK):
+        stop = min(start + EMBED_BLOCK, len(local))
+        inputs = block[: stop - start]
+        inputs[:, :split].copy_(local[start:stop])
+        inputs[:, split:].copy_(global_[start:stop])
+        fused = torch.mm(inputs, fused_weight).float().add_(bias)
+        hidden = torch.mm(fused.bfloat16(), first.weight).float().add_(first.bias).relu_()
+        fused += torch.mm(hidden.bfloat16(), last.weight).float().add_(last.bias)
+        out[start:stop] = F.normalize(fused, dim=-1)
+    return out
+
+
+class _Bf16Linear(NamedTuple):
+    weight: torch.Tensor  # in x out, bf16
+    bias: torch.Tensor  # float32
+
+
+def _bf16_weights(
+    heads: LoopNetHeads,
+) -> tuple[torch.Tensor, _Bf16Linear, _Bf16Linear, torch.Tensor]:
+    """The heads' products as :func:`embed_bf16` runs them: ``[alpha P_D, (1 - alpha) P_R]``
+    stacked (``local + global x fused``), the similarity MLP's two layers, the fusion bias."""
     fusion, mlp = heads.fusion, heads.similarity.mlp
     first, last = mlp[0], mlp[2]
     assert isinstance(first, nn.Linear) and isinstance(last, nn.Linear)
-
-    def product(x: torch.Tensor, weight: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-        return torch.mm(x.to(torch.bfloat16), (weight * scale).t().to(torch.bfloat16)).float()
-
     alpha = fusion.alpha
-    fused = product(local, fusion.project_local.weight, alpha)
-    fused += product(global_, fusion.project_global.weight, 1 - alpha)
-    fused += fusion.bias
-    hidden = torch.relu_(product(fused, first.weight) + first.bias)
-    fused += product(hidden, last.weight) + last.bias
-    return F.normalize(fused, dim=-1)
+    stacked = torch.cat(
+        [alpha * fusion.project_local.weight, (1 - alpha) * fusion.project_global.weight], dim=1
+    )
+
+    def layer(linear: nn.Linear) -> _Bf16Linear:
+        return _Bf16Linear(linear.weight.t().bfloat16().contiguous(), linear.bias.float())
+
+    return stacked.t().bfloat16().contiguous(), layer(first), layer(last), fusion.bias.float()
 
 
 def _ms_since(start: float) -> float:

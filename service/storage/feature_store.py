@@ -81,6 +81,18 @@ class StoredVectors:
         return len(self.ids)
 
 
+def stored_frame_ids(session: Session, atlas_id: int) -> np.ndarray:
+    """The ids of an atlas's frames with stored features (those the readers below yield), in
+    id order."""
+    query = (
+        select(Frame.id)
+        .join(FrameFeatureRow, FrameFeatureRow.frame_id == Frame.id)
+        .where(Frame.atlas_id == atlas_id)
+        .order_by(Frame.id)
+    )
+    return np.fromiter(session.scalars(query), dtype=np.int64)
+
+
 def _stored_rows(
     session: Session,
     atlas_id: int,

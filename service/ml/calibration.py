@@ -191,16 +191,7 @@ class Calibration:
         self, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
     ) -> np.ndarray:
         """``n x aggregator.dim`` raw local vectors of ``n`` frames."""
-        return (
-            np.stack(
-                [
-                    self.aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
-                    for d, s in zip(descriptors, scores, strict=True)
-                ]
-            )
-            if len(descriptors)
-            else np.zeros((0, self.aggregator.dim), np.float32)
-        )
+        return aggregate_frames(self.aggregator, descriptors, scores)
 
     def branch_vectors(
         self,
@@ -319,12 +310,7 @@ class Calibration:
         timings["vocabulary"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        local_raw = np.stack(
-            [
-                aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
-                for d, s in zip(inputs.descriptors, inputs.scores, strict=True)
-            ]
-        )
+        local_raw = aggregate_frames(aggregator, inputs.descriptors, inputs.scores)
         timings["aggregate"] = time.perf_counter() - start
 
         start = time.perf_counter()
@@ -384,6 +370,18 @@ class Calibration:
             None,
             self.spread,
         )
+
+
+def aggregate_frames(
+    aggregator: Aggregator, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
+) -> np.ndarray:
+    """``n x aggregator.dim`` raw local vectors of ``n`` frames, each written straight into
+    one array (a 10,000-frame VLAD matrix is 650 MB: no list of rows to stack). Descriptors go
+    to the aggregator as stored (float16), which converts them itself."""
+    out = np.empty((len(descriptors), aggregator.dim), np.float32)
+    for row, (d, s) in enumerate(zip(descriptors, scores, strict=True)):
+        out[row] = aggregator.aggregate(np.asarray(d), np.asarray(s, np.float32))
+    return out
 
 
 def standardised_alpha(alpha: float, spread: tuple[float, float] | None) -> float:

@@ -9,7 +9,12 @@ import pytest
 
 from service.ml import whitening as whitening_module
 from service.ml.aggregators import MeanAggregator, VladAggregator, fit_aggregator, fit_vocabulary
-from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
+from service.ml.calibration import (
+    Calibration,
+    CalibrationConfig,
+    CalibrationInputs,
+    aggregate_frames,
+)
 from service.ml.features import LocalFeatures
 from service.ml.heads import LoopNetHeads
 from service.ml.impostors import (
@@ -46,6 +51,43 @@ def test_vlad_leaves_unused_words_zero_and_empty_frames_zero() -> None:
     assert empty.shape == (4,) and not empty.any()
     with pytest.raises(ValueError, match="N x 2"):
         vlad.aggregate(np.zeros((3, 5), np.float32))
+
+
+def _reference_vlad(centroids: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+    """The VLAD formula of the module doc, one dense step at a time (float64)."""
+    x, c = descriptors.astype(np.float64), centroids.astype(np.float64)
+    words = ((x[:, None] - c[None]) ** 2).sum(2).argmin(1)
+    blocks = np.stack([(x[words == k] - c[k]).sum(0) for k in range(len(c))])
+    norms = np.linalg.norm(blocks, axis=1, keepdims=True)
+    flat = (blocks / np.where(norms > 0, norms, 1.0)).reshape(-1)
+    flat = np.sign(flat) * np.sqrt(np.abs(flat))
+    return flat / np.linalg.norm(flat)
+
+
+def test_vlad_of_stored_float16_frames_matches_the_formula() -> None:
+    # DISK-sized (128 words of 128-d, 1,024 keypoints), read-only float16 as the store gives
+    rng = np.random.default_rng(5)
+    centroids = rng.normal(size=(128, 128)).astype(np.float32)
+    vlad = VladAggregator(centroids)
+    for _ in range(3):
+        stored = centroids[rng.integers(0, 128, 1024)] + rng.normal(size=(1024, 128))
+        blob = stored.astype(np.float16).tobytes()
+        descriptors = np.frombuffer(blob, np.float16).reshape(1024, 128)
+        np.testing.assert_allclose(
+            vlad.aggregate(descriptors), _reference_vlad(centroids, descriptors), atol=1e-6
+        )
+
+
+def test_aggregate_frames_stacks_each_frames_vector() -> None:
+    rng = np.random.default_rng(6)
+    vlad = VladAggregator(rng.normal(size=(8, 16)).astype(np.float32))
+    frames = [rng.normal(size=(n, 16)).astype(np.float16) for n in (30, 0, 5)]
+    scores = [np.ones(len(f), np.float32) for f in frames]
+    stacked = aggregate_frames(vlad, frames, scores)
+    assert stacked.shape == (3, vlad.dim) and stacked.dtype == np.float32
+    for row, frame in zip(stacked, frames, strict=True):
+        np.testing.assert_array_equal(row, vlad.aggregate(frame))
+    assert aggregate_frames(vlad, [], []).shape == (0, vlad.dim)
 
 
 def test_vocabulary_is_deterministic_and_finds_separated_clusters() -> None:

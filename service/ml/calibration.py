@@ -142,6 +142,7 @@ class FittedCalibration:
     local_branch: np.ndarray
     global_branch: np.ndarray
     timings_s: dict[str, float]
+    cpu_s: dict[str, float]  # per stage too: on a shared machine, what a quiet one would take
 
 
 class Calibration:
@@ -297,9 +298,8 @@ class Calibration:
         """Fit every part on an atlas's stored features (no labels); see the module doc."""
         if len(inputs) < 3:
             raise ValueError(f"a calibration needs at least 3 frames, got {len(inputs)}")
-        timings: dict[str, float] = {}
+        clock = StageClock()
         rng = np.random.default_rng(config.seed)
-        start = time.perf_counter()
         sample = descriptor_sample(inputs.descriptors, config.descriptor_sample, rng)
         words = config.words_for(sample.shape[1])
         if config.aggregator == "vlad" and len(sample) < words:
@@ -307,29 +307,25 @@ class Calibration:
                 f"the atlas holds {len(sample)} descriptors, too few for {words} words"
             )
         aggregator = fit_aggregator(config.aggregator, sample, words=words, seed=config.seed)
-        timings["vocabulary"] = time.perf_counter() - start
+        clock.lap("vocabulary")
 
-        start = time.perf_counter()
         local_raw = aggregate_frames(aggregator, inputs.descriptors, inputs.scores)
-        timings["aggregate"] = time.perf_counter() - start
+        clock.lap("aggregate")
 
-        start = time.perf_counter()
         has_local = np.asarray(local_raw.any(1), bool)  # frames without keypoints: zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
         calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
-        timings["whitening"] = time.perf_counter() - start
+        clock.lap("whitening")
 
-        start = time.perf_counter()
         local_branch = calibration.local_whitening.transform(local_raw)
         local_branch[~has_local] = 0.0
         global_branch = calibration.global_whitening.transform(inputs.global_vectors)
-        timings["transform"] = time.perf_counter() - start
+        clock.lap("transform")
 
         # Impostor cosines between frames the whitening has not seen and frames it has, as a
         # query meets stored frames: in-sample pairs look more orthogonal than any query would.
         # Frames are held out in whole stretches of their robot's sequence, so that no place of
         # a held-out frame was seen either (a query of a new place, which the score is about).
-        start = time.perf_counter()
         held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
         probe = _fit_branches(
             config, aggregator, local_raw, inputs.global_vectors, fit_rows[~held[fit_rows]]
@@ -357,8 +353,8 @@ class Calibration:
         calibration.spread = (_spread(local_cos[both_local]), _spread(global_cos))
         weights = _cosine_weights(calibration.fusion_alpha)
         calibration.impostors = ImpostorModel.fit(weights[0] * local_cos + weights[1] * global_cos)
-        timings["impostors"] = time.perf_counter() - start
-        return FittedCalibration(calibration, local_branch, global_branch, timings)
+        clock.lap("impostors")
+        return FittedCalibration(calibration, local_branch, global_branch, clock.wall, clock.cpu)
 
     def with_alpha(self, alpha: float) -> Calibration:
         """The same branches at another fusion weight (the impostor model is not refitted)."""
@@ -382,6 +378,22 @@ def aggregate_frames(
     for row, (d, s) in enumerate(zip(descriptors, scores, strict=True)):
         out[row] = aggregator.aggregate(np.asarray(d), np.asarray(s, np.float32))
     return out
+
+
+class StageClock:
+    """Wall and CPU seconds of consecutive stages, each closed by :meth:`lap`."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self._mark = (time.perf_counter(), time.process_time())
+
+    def lap(self, stage: str) -> None:
+        """Close ``stage``: the seconds since the previous lap (or the clock's start)."""
+        now = (time.perf_counter(), time.process_time())
+        self.wall[stage] = now[0] - self._mark[0]
+        self.cpu[stage] = now[1] - self._mark[1]
+        self._mark = now
 
 
 def standardised_alpha(alpha: float, spread: tuple[float, float] | None) -> float:

@@ -174,6 +174,22 @@ def test_randomised_fit_agrees_with_the_exact_one(monkeypatch: pytest.MonkeyPatc
     np.testing.assert_allclose(fast.scale, exact.scale, rtol=1e-3)
 
 
+def test_a_fit_started_from_a_nearby_one_agrees_with_the_exact_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the calibration's probe: a refit on most of the same frames, started from the full fit
+    eigenvalues = np.concatenate([np.geomspace(50, 1, 10), np.full(190, 0.01)])
+    data, _ = _known_covariance(3_000, eigenvalues, seed=4)
+    config = WhiteningConfig(max_dims=10)
+    exact = Whitening.fit(data[:2_400], config)
+    monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 50)
+    warm = Whitening.fit(data[:2_400], config, near=Whitening.fit(data, config))
+    np.testing.assert_allclose(warm.eigenvalues, exact.eigenvalues, rtol=1e-3)
+    np.testing.assert_allclose(np.abs(warm.axes.T @ exact.axes), np.eye(10), atol=1e-2)
+    with pytest.raises(ValueError, match="cannot start"):
+        Whitening.fit(data[:, :100], config, near=exact)
+
+
 # ----- impostor score -----------------------------------------------------------------------
 
 

@@ -314,7 +314,9 @@ class Calibration:
 
         has_local = np.asarray(local_raw.any(1), bool)  # frames without keypoints: zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
-        calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
+        calibration = _fit_branches(
+            config, aggregator, local_raw, has_local, inputs.global_vectors, fit_rows
+        )
         clock.lap("whitening")
 
         local_branch = calibration.local_whitening.transform(local_raw)
@@ -334,6 +336,7 @@ class Calibration:
             config,
             aggregator,
             local_raw,
+            has_local,
             inputs.global_vectors,
             fit_rows[~held[fit_rows]],
             near=calibration,
@@ -463,13 +466,15 @@ def _fit_branches(
     config: CalibrationConfig,
     aggregator: Aggregator,
     local_raw: np.ndarray,
+    has_local: np.ndarray,
     global_vectors: np.ndarray,
     rows: np.ndarray,
     near: Calibration | None = None,
 ) -> Calibration:
-    """Both whitenings fitted on ``rows`` (local: those with keypoints); no impostor model.
-    ``near``: a calibration fitted on mostly the same rows, whose axes start the fits."""
-    local_rows = rows[local_raw[rows].any(1)]
+    """Both whitenings fitted on ``rows`` (distinct; local: those with keypoints, where
+    ``has_local``); no impostor model. ``near``: a calibration fitted on mostly the same
+    rows, whose axes start the fits."""
+    local_rows = rows[has_local[rows]]
     if len(local_rows) < 2:
         raise ValueError("fewer than 2 frames with keypoints: the local branch cannot be fitted")
     if len(rows) < 2:
@@ -478,19 +483,25 @@ def _fit_branches(
         config,
         aggregator,
         Whitening.fit(
-            local_raw[local_rows],
+            _rows_of(local_raw, local_rows),
             config.local,
             seed=config.seed,
             near=near.local_whitening if near is not None else None,
         ),
         Whitening.fit(
-            global_vectors[rows],
+            _rows_of(global_vectors, rows),
             config.global_,
             seed=config.seed,
             near=near.global_whitening if near is not None else None,
         ),
         None,
     )
+
+
+def _rows_of(matrix: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``matrix``'s distinct ``rows`` in storage order: ``matrix`` itself, not a copy, when
+    they are all of them (a whitening does not depend on the order of its vectors)."""
+    return matrix if len(rows) == len(matrix) else matrix[np.sort(rows)]
 
 
 def descriptor_sample(

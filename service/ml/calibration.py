@@ -314,8 +314,23 @@ class Calibration:
 
         has_local = np.asarray(local_raw.any(1), bool)  # frames without keypoints: zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
+        # The impostor probe (below) refits both branches without frames held out in stretches;
+        # it is fitted first, from a random sketch, and the full fit starts from its axes (four
+        # fifths of the same frames): the full fit's randomised SVD then needs one power
+        # iteration instead of two, and lands nearer its exact axes (benchmarks/RESULTS.md,
+        # "Calibration cost"). Not the other way round: a probe started from the full fit
+        # would inherit the frames it holds out (its impostor spread fell 1.6% on Nordland).
+        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
+        probe = _fit_branches(
+            config,
+            aggregator,
+            local_raw,
+            has_local,
+            inputs.global_vectors,
+            fit_rows[~held[fit_rows]],
+        )
         calibration = _fit_branches(
-            config, aggregator, local_raw, has_local, inputs.global_vectors, fit_rows
+            config, aggregator, local_raw, has_local, inputs.global_vectors, fit_rows, near=probe
         )
         clock.lap("whitening")
 
@@ -328,19 +343,6 @@ class Calibration:
         # query meets stored frames: in-sample pairs look more orthogonal than any query would.
         # Frames are held out in whole stretches of their robot's sequence, so that no place of
         # a held-out frame was seen either (a query of a new place, which the score is about).
-        # The probe refits on four fifths of the same frames, so its randomised SVDs start
-        # from the full fit's axes: closer to its exact axes than a cold start, in 4 passes
-        # over the data instead of 6 (benchmarks/RESULTS.md, "Calibration cost").
-        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
-        probe = _fit_branches(
-            config,
-            aggregator,
-            local_raw,
-            has_local,
-            inputs.global_vectors,
-            fit_rows[~held[fit_rows]],
-            near=calibration,
-        )
         probe_local = probe.local_whitening.transform(local_raw)
         probe_local[~has_local] = 0.0
         branches = (probe_local, probe.global_whitening.transform(inputs.global_vectors))

@@ -94,9 +94,9 @@ class Whitening:
 
         Small problems are solved exactly (eigen-decomposition on the smaller side); large
         ones by a randomised SVD of the kept axes only, which is what keeps an 8,192-d VLAD
-        of tens of thousands of frames within seconds. ``near``: a whitening fitted on mostly
-        the same vectors (the calibration's probe refits on four fifths of the frames); the
-        randomised SVD starts from its axes, already close, with fewer passes over the data.
+        of tens of thousands of frames within seconds. ``near``: a whitening fitted on most of
+        the same vectors (a calibration's probe, on four fifths of its frames); the randomised
+        SVD starts from its axes, already close, with fewer passes over the data.
         """
         x = np.asarray(vectors, np.float32)
         n, dim = x.shape

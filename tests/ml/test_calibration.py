@@ -177,13 +177,13 @@ def test_randomised_fit_agrees_with_the_exact_one(monkeypatch: pytest.MonkeyPatc
 def test_a_fit_started_from_a_nearby_one_agrees_with_the_exact_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # the calibration's probe: a refit on most of the same frames, started from the full fit
+    # a calibration's full fit, started from its probe's (four fifths of the same vectors)
     eigenvalues = np.concatenate([np.geomspace(50, 1, 10), np.full(190, 0.01)])
     data, _ = _known_covariance(3_000, eigenvalues, seed=4)
     config = WhiteningConfig(max_dims=10)
-    exact = Whitening.fit(data[:2_400], config)
+    exact = Whitening.fit(data, config)
     monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 50)
-    warm = Whitening.fit(data[:2_400], config, near=Whitening.fit(data, config))
+    warm = Whitening.fit(data, config, near=Whitening.fit(data[:2_400], config))
     np.testing.assert_allclose(warm.eigenvalues, exact.eigenvalues, rtol=1e-3)
     np.testing.assert_allclose(np.abs(warm.axes.T @ exact.axes), np.eye(10), atol=1e-2)
     with pytest.raises(ValueError, match="cannot start"):
@@ -291,6 +291,26 @@ def test_calibration_fits_embeds_and_round_trips(tmp_path: Path) -> None:
     np.testing.assert_array_equal(
         refit.embed_many(inputs.descriptors, inputs.scores, inputs.global_vectors), embedded
     )
+
+
+def test_the_impostor_probe_never_starts_from_the_full_fit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the full fit starts from the probe's axes, never the reverse: the probe must not see
+    # the frames it holds out, so its score model is the one of a probe fitted on its own
+    monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 20)  # the randomised SVD, as at scale
+    inputs, config = _synthetic_atlas(), CalibrationConfig(words=8)
+    fitted = Calibration.fit(inputs, config).calibration
+    fit = Whitening.fit.__func__  # type: ignore[attr-defined]
+
+    def cold(cls: type[Whitening], *args: object, **kwargs: object) -> Whitening:
+        return fit(cls, *args, **{**kwargs, "near": None})  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(Whitening, "fit", classmethod(cold))
+    unstarted = Calibration.fit(inputs, config).calibration
+    assert fitted.spread == unstarted.spread
+    assert fitted.impostors is not None and unstarted.impostors is not None
+    np.testing.assert_array_equal(fitted.impostors.quantiles, unstarted.impostors.quantiles)
 
 
 def test_calibration_variants_and_bad_inputs() -> None:

@@ -316,10 +316,11 @@ class Calibration:
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
         # The impostor probe (below) refits both branches without frames held out in stretches;
         # it is fitted first, from a random sketch, and the full fit starts from its axes (four
-        # fifths of the same frames): the full fit's randomised SVD then needs one power
-        # iteration instead of two, and lands nearer its exact axes (benchmarks/RESULTS.md,
-        # "Calibration cost"). Not the other way round: a probe started from the full fit
-        # would inherit the frames it holds out (its impostor spread fell 1.6% on Nordland).
+        # fifths of the same frames): the full fit's randomised SVD then needs no power
+        # iteration, 2 passes over the data instead of 6, and lands at least as near its exact
+        # axes (benchmarks/RESULTS.md, "Calibration cost"). Not the other way round: a probe
+        # started from the full fit would inherit the frames it holds out (its impostor spread
+        # fell 1.6% on Nordland).
         held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
         probe = _fit_branches(
             config,

@@ -24,7 +24,7 @@ from service.ml.aggregation import l2_normalize
 
 EXACT_LIMIT = 2048  # above this (on the smaller side) the randomised SVD is used
 POWER_ITERATIONS = 2  # of the randomised SVD from a random sketch
-WARM_POWER_ITERATIONS = 1  # from a nearby fit's axes (see Whitening.fit)
+WARM_POWER_ITERATIONS = 0  # from a nearby fit's axes, already close (see Whitening.fit)
 BLOCK_VALUES = 1 << 22  # values of a block of rows projected at once (16 MB)
 
 

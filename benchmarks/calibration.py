@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from typing import overload
 
 import numpy as np
+import torch
 
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.presets import PRESETS
@@ -58,7 +59,10 @@ class SyntheticDescriptors(Sequence[np.ndarray]):
         rows = place + rng.integers(0, 2 * self.keypoints, self.keypoints)
         start = int(rng.integers(0, 3 * self.keypoints))
         noisy = self.pool[rows] + self.noise[start : start + self.keypoints]
-        return (noisy / np.linalg.norm(noisy, axis=1, keepdims=True)).astype(np.float16)
+        unit = noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
+        # rounded by torch: the same float16 values as numpy's astype, a tenth of the time
+        # (the generator stands in for reads that cost a job almost nothing)
+        return torch.from_numpy(unit).half().numpy()
 
 
 def generation_cpu_s(descriptors: SyntheticDescriptors, sample: int = 500) -> float:

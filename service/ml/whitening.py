@@ -205,7 +205,7 @@ def _randomised_axes(
     rank-one term, which saves a copy of the matrix (650 MB for 10,000 VLAD vectors).
     """
     generator = torch.Generator().manual_seed(seed)
-    matrix = torch.from_numpy(np.ascontiguousarray(vectors))
+    matrix = torch.from_numpy(np.require(vectors, requirements=("C", "W")))  # torch: writable
     centre = torch.from_numpy(np.ascontiguousarray(mean))[None]  # 1 x dim
 
     def times(right: torch.Tensor) -> torch.Tensor:  # (vectors - mean) @ right

@@ -174,12 +174,14 @@ def test_randomised_fit_agrees_with_the_exact_one(monkeypatch: pytest.MonkeyPatc
     np.testing.assert_allclose(fast.scale, exact.scale, rtol=1e-3)
 
 
+@pytest.mark.filterwarnings("error")  # read-only vectors (as stored) need no copy warning
 def test_a_fit_started_from_a_nearby_one_agrees_with_the_exact_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # a calibration's full fit, started from its probe's (four fifths of the same vectors)
     eigenvalues = np.concatenate([np.geomspace(50, 1, 10), np.full(190, 0.01)])
     data, _ = _known_covariance(3_000, eigenvalues, seed=4)
+    data.flags.writeable = False
     config = WhiteningConfig(max_dims=10)
     exact = Whitening.fit(data, config)
     monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 50)

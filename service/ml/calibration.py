@@ -142,6 +142,7 @@ class FittedCalibration:
     local_branch: np.ndarray
     global_branch: np.ndarray
     timings_s: dict[str, float]
+    cpu_s: dict[str, float]  # per stage too: on a shared machine, what a quiet one would take
 
 
 class Calibration:
@@ -191,16 +192,7 @@ class Calibration:
         self, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
     ) -> np.ndarray:
         """``n x aggregator.dim`` raw local vectors of ``n`` frames."""
-        return (
-            np.stack(
-                [
-                    self.aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
-                    for d, s in zip(descriptors, scores, strict=True)
-                ]
-            )
-            if len(descriptors)
-            else np.zeros((0, self.aggregator.dim), np.float32)
-        )
+        return aggregate_frames(self.aggregator, descriptors, scores)
 
     def branch_vectors(
         self,
@@ -306,9 +298,8 @@ class Calibration:
         """Fit every part on an atlas's stored features (no labels); see the module doc."""
         if len(inputs) < 3:
             raise ValueError(f"a calibration needs at least 3 frames, got {len(inputs)}")
-        timings: dict[str, float] = {}
+        clock = StageClock()
         rng = np.random.default_rng(config.seed)
-        start = time.perf_counter()
         sample = descriptor_sample(inputs.descriptors, config.descriptor_sample, rng)
         words = config.words_for(sample.shape[1])
         if config.aggregator == "vlad" and len(sample) < words:
@@ -316,38 +307,43 @@ class Calibration:
                 f"the atlas holds {len(sample)} descriptors, too few for {words} words"
             )
         aggregator = fit_aggregator(config.aggregator, sample, words=words, seed=config.seed)
-        timings["vocabulary"] = time.perf_counter() - start
+        clock.lap("vocabulary")
 
-        start = time.perf_counter()
-        local_raw = np.stack(
-            [
-                aggregator.aggregate(np.asarray(d, np.float32), np.asarray(s, np.float32))
-                for d, s in zip(inputs.descriptors, inputs.scores, strict=True)
-            ]
-        )
-        timings["aggregate"] = time.perf_counter() - start
+        local_raw = aggregate_frames(aggregator, inputs.descriptors, inputs.scores)
+        clock.lap("aggregate")
 
-        start = time.perf_counter()
         has_local = np.asarray(local_raw.any(1), bool)  # frames without keypoints: zero
         fit_rows = rng.permutation(len(inputs))[: config.fit_frames]
-        calibration = _fit_branches(config, aggregator, local_raw, inputs.global_vectors, fit_rows)
-        timings["whitening"] = time.perf_counter() - start
+        # The impostor probe (below) refits both branches without frames held out in stretches;
+        # it is fitted first, from a random sketch, and the full fit starts from its axes (four
+        # fifths of the same frames): the full fit's randomised SVD then needs no power
+        # iteration, 2 passes over the data instead of 6, and lands at least as near its exact
+        # axes (benchmarks/RESULTS.md, "Calibration cost"). Not the other way round: a probe
+        # started from the full fit would inherit the frames it holds out (its impostor spread
+        # fell 1.6% on Nordland).
+        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
+        probe = _fit_branches(
+            config,
+            aggregator,
+            local_raw,
+            has_local,
+            inputs.global_vectors,
+            fit_rows[~held[fit_rows]],
+        )
+        calibration = _fit_branches(
+            config, aggregator, local_raw, has_local, inputs.global_vectors, fit_rows, near=probe
+        )
+        clock.lap("whitening")
 
-        start = time.perf_counter()
         local_branch = calibration.local_whitening.transform(local_raw)
         local_branch[~has_local] = 0.0
         global_branch = calibration.global_whitening.transform(inputs.global_vectors)
-        timings["transform"] = time.perf_counter() - start
+        clock.lap("transform")
 
         # Impostor cosines between frames the whitening has not seen and frames it has, as a
         # query meets stored frames: in-sample pairs look more orthogonal than any query would.
         # Frames are held out in whole stretches of their robot's sequence, so that no place of
         # a held-out frame was seen either (a query of a new place, which the score is about).
-        start = time.perf_counter()
-        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
-        probe = _fit_branches(
-            config, aggregator, local_raw, inputs.global_vectors, fit_rows[~held[fit_rows]]
-        )
         probe_local = probe.local_whitening.transform(local_raw)
         probe_local[~has_local] = 0.0
         branches = (probe_local, probe.global_whitening.transform(inputs.global_vectors))
@@ -371,8 +367,8 @@ class Calibration:
         calibration.spread = (_spread(local_cos[both_local]), _spread(global_cos))
         weights = _cosine_weights(calibration.fusion_alpha)
         calibration.impostors = ImpostorModel.fit(weights[0] * local_cos + weights[1] * global_cos)
-        timings["impostors"] = time.perf_counter() - start
-        return FittedCalibration(calibration, local_branch, global_branch, timings)
+        clock.lap("impostors")
+        return FittedCalibration(calibration, local_branch, global_branch, clock.wall, clock.cpu)
 
     def with_alpha(self, alpha: float) -> Calibration:
         """The same branches at another fusion weight (the impostor model is not refitted)."""
@@ -384,6 +380,34 @@ class Calibration:
             None,
             self.spread,
         )
+
+
+def aggregate_frames(
+    aggregator: Aggregator, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
+) -> np.ndarray:
+    """``n x aggregator.dim`` raw local vectors of ``n`` frames, each written straight into
+    one array (a 10,000-frame VLAD matrix is 650 MB: no list of rows to stack). Descriptors go
+    to the aggregator as stored (float16), which converts them itself."""
+    out = np.empty((len(descriptors), aggregator.dim), np.float32)
+    for row, (d, s) in enumerate(zip(descriptors, scores, strict=True)):
+        out[row] = aggregator.aggregate(np.asarray(d), np.asarray(s, np.float32))
+    return out
+
+
+class StageClock:
+    """Wall and CPU seconds of consecutive stages, each closed by :meth:`lap`."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self._mark = (time.perf_counter(), time.process_time())
+
+    def lap(self, stage: str) -> None:
+        """Close ``stage``: the seconds since the previous lap (or the clock's start)."""
+        now = (time.perf_counter(), time.process_time())
+        self.wall[stage] = now[0] - self._mark[0]
+        self.cpu[stage] = now[1] - self._mark[1]
+        self._mark = now
 
 
 def standardised_alpha(alpha: float, spread: tuple[float, float] | None) -> float:
@@ -445,11 +469,15 @@ def _fit_branches(
     config: CalibrationConfig,
     aggregator: Aggregator,
     local_raw: np.ndarray,
+    has_local: np.ndarray,
     global_vectors: np.ndarray,
     rows: np.ndarray,
+    near: Calibration | None = None,
 ) -> Calibration:
-    """Both whitenings fitted on ``rows`` (local: those with keypoints); no impostor model."""
-    local_rows = rows[local_raw[rows].any(1)]
+    """Both whitenings fitted on ``rows`` (distinct; local: those with keypoints, where
+    ``has_local``); no impostor model. ``near``: a calibration fitted on mostly the same
+    rows, whose axes start the fits."""
+    local_rows = rows[has_local[rows]]
     if len(local_rows) < 2:
         raise ValueError("fewer than 2 frames with keypoints: the local branch cannot be fitted")
     if len(rows) < 2:
@@ -457,10 +485,26 @@ def _fit_branches(
     return Calibration(
         config,
         aggregator,
-        Whitening.fit(local_raw[local_rows], config.local, seed=config.seed),
-        Whitening.fit(global_vectors[rows], config.global_, seed=config.seed),
+        Whitening.fit(
+            _rows_of(local_raw, local_rows),
+            config.local,
+            seed=config.seed,
+            near=near.local_whitening if near is not None else None,
+        ),
+        Whitening.fit(
+            _rows_of(global_vectors, rows),
+            config.global_,
+            seed=config.seed,
+            near=near.global_whitening if near is not None else None,
+        ),
         None,
     )
+
+
+def _rows_of(matrix: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``matrix``'s distinct ``rows`` in storage order: ``matrix`` itself, not a copy, when
+    they are all of them (a whitening does not depend on the order of its vectors)."""
+    return matrix if len(rows) == len(matrix) else matrix[np.sort(rows)]
 
 
 def descriptor_sample(

@@ -9,7 +9,12 @@ import pytest
 
 from service.ml import whitening as whitening_module
 from service.ml.aggregators import MeanAggregator, VladAggregator, fit_aggregator, fit_vocabulary
-from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
+from service.ml.calibration import (
+    Calibration,
+    CalibrationConfig,
+    CalibrationInputs,
+    aggregate_frames,
+)
 from service.ml.features import LocalFeatures
 from service.ml.heads import LoopNetHeads
 from service.ml.impostors import (
@@ -46,6 +51,43 @@ def test_vlad_leaves_unused_words_zero_and_empty_frames_zero() -> None:
     assert empty.shape == (4,) and not empty.any()
     with pytest.raises(ValueError, match="N x 2"):
         vlad.aggregate(np.zeros((3, 5), np.float32))
+
+
+def _reference_vlad(centroids: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+    """The VLAD formula of the module doc, one dense step at a time (float64)."""
+    x, c = descriptors.astype(np.float64), centroids.astype(np.float64)
+    words = ((x[:, None] - c[None]) ** 2).sum(2).argmin(1)
+    blocks = np.stack([(x[words == k] - c[k]).sum(0) for k in range(len(c))])
+    norms = np.linalg.norm(blocks, axis=1, keepdims=True)
+    flat = (blocks / np.where(norms > 0, norms, 1.0)).reshape(-1)
+    flat = np.sign(flat) * np.sqrt(np.abs(flat))
+    return flat / np.linalg.norm(flat)
+
+
+def test_vlad_of_stored_float16_frames_matches_the_formula() -> None:
+    # DISK-sized (128 words of 128-d, 1,024 keypoints), read-only float16 as the store gives
+    rng = np.random.default_rng(5)
+    centroids = rng.normal(size=(128, 128)).astype(np.float32)
+    vlad = VladAggregator(centroids)
+    for _ in range(3):
+        stored = centroids[rng.integers(0, 128, 1024)] + rng.normal(size=(1024, 128))
+        blob = stored.astype(np.float16).tobytes()
+        descriptors = np.frombuffer(blob, np.float16).reshape(1024, 128)
+        np.testing.assert_allclose(
+            vlad.aggregate(descriptors), _reference_vlad(centroids, descriptors), atol=1e-6
+        )
+
+
+def test_aggregate_frames_stacks_each_frames_vector() -> None:
+    rng = np.random.default_rng(6)
+    vlad = VladAggregator(rng.normal(size=(8, 16)).astype(np.float32))
+    frames = [rng.normal(size=(n, 16)).astype(np.float16) for n in (30, 0, 5)]
+    scores = [np.ones(len(f), np.float32) for f in frames]
+    stacked = aggregate_frames(vlad, frames, scores)
+    assert stacked.shape == (3, vlad.dim) and stacked.dtype == np.float32
+    for row, frame in zip(stacked, frames, strict=True):
+        np.testing.assert_array_equal(row, vlad.aggregate(frame))
+    assert aggregate_frames(vlad, [], []).shape == (0, vlad.dim)
 
 
 def test_vocabulary_is_deterministic_and_finds_separated_clusters() -> None:
@@ -130,6 +172,24 @@ def test_randomised_fit_agrees_with_the_exact_one(monkeypatch: pytest.MonkeyPatc
     np.testing.assert_allclose(fast.eigenvalues, exact.eigenvalues, rtol=1e-3)
     np.testing.assert_allclose(np.abs(fast.axes.T @ exact.axes), np.eye(10), atol=1e-2)
     np.testing.assert_allclose(fast.scale, exact.scale, rtol=1e-3)
+
+
+@pytest.mark.filterwarnings("error")  # read-only vectors (as stored) need no copy warning
+def test_a_fit_started_from_a_nearby_one_agrees_with_the_exact_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a calibration's full fit, started from its probe's (four fifths of the same vectors)
+    eigenvalues = np.concatenate([np.geomspace(50, 1, 10), np.full(190, 0.01)])
+    data, _ = _known_covariance(3_000, eigenvalues, seed=4)
+    data.flags.writeable = False
+    config = WhiteningConfig(max_dims=10)
+    exact = Whitening.fit(data, config)
+    monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 50)
+    warm = Whitening.fit(data, config, near=Whitening.fit(data[:2_400], config))
+    np.testing.assert_allclose(warm.eigenvalues, exact.eigenvalues, rtol=1e-3)
+    np.testing.assert_allclose(np.abs(warm.axes.T @ exact.axes), np.eye(10), atol=1e-2)
+    with pytest.raises(ValueError, match="cannot start"):
+        Whitening.fit(data[:, :100], config, near=exact)
 
 
 # ----- impostor score -----------------------------------------------------------------------
@@ -233,6 +293,26 @@ def test_calibration_fits_embeds_and_round_trips(tmp_path: Path) -> None:
     np.testing.assert_array_equal(
         refit.embed_many(inputs.descriptors, inputs.scores, inputs.global_vectors), embedded
     )
+
+
+def test_the_impostor_probe_never_starts_from_the_full_fit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the full fit starts from the probe's axes, never the reverse: the probe must not see
+    # the frames it holds out, so its score model is the one of a probe fitted on its own
+    monkeypatch.setattr(whitening_module, "EXACT_LIMIT", 20)  # the randomised SVD, as at scale
+    inputs, config = _synthetic_atlas(), CalibrationConfig(words=8)
+    fitted = Calibration.fit(inputs, config).calibration
+    fit = Whitening.fit.__func__  # type: ignore[attr-defined]
+
+    def cold(cls: type[Whitening], *args: object, **kwargs: object) -> Whitening:
+        return fit(cls, *args, **{**kwargs, "near": None})  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(Whitening, "fit", classmethod(cold))
+    unstarted = Calibration.fit(inputs, config).calibration
+    assert fitted.spread == unstarted.spread
+    assert fitted.impostors is not None and unstarted.impostors is not None
+    np.testing.assert_array_equal(fitted.impostors.quantiles, unstarted.impostors.quantiles)
 
 
 def test_calibration_variants_and_bad_inputs() -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import faiss
 import numpy as np
+import torch
 
 from service.ml.aggregation import l2_normalize
 
@@ -68,24 +69,31 @@ class VladAggregator:
         return np.asarray(scores.argmax(1), np.int64)
 
     def aggregate(self, descriptors: np.ndarray, scores: np.ndarray | None = None) -> np.ndarray:
-        """The VLAD vector of one frame; a frame without descriptors gives the zero vector."""
+        """The VLAD vector of one frame; a frame without descriptors gives the zero vector.
+
+        A calibration aggregates every stored frame, so the two steps numpy is slow at go
+        through torch: converting stored float16 descriptors (ten times faster) and summing
+        each word's descriptors (a scatter instead of a one-hot product).
+        """
         if descriptors.ndim != 2 or descriptors.shape[1] != self.descriptor_dim:
             raise ValueError(
                 f"descriptors must be N x {self.descriptor_dim}, got {descriptors.shape}"
             )
         if len(descriptors) == 0:
             return np.zeros(self.dim, np.float32)
-        x = descriptors.astype(np.float32, copy=False)
-        words = self.assign(x)
-        membership = np.zeros((self.words, len(x)), np.float32)
-        membership[words, np.arange(len(x))] = 1.0
-        blocks = membership @ x
-        counts = membership.sum(1)
-        blocks -= counts[:, None] * self.centroids
-        blocks = l2_normalize(blocks, axis=1)
-        flat = blocks.reshape(-1)
-        flat = np.sign(flat) * np.sqrt(np.abs(flat))
-        return l2_normalize(flat)
+        x = _as_float32(descriptors)
+        words = self.assign(x.numpy())
+        blocks = torch.zeros(self.centroids.shape).index_add_(0, torch.from_numpy(words), x)
+        counts = np.bincount(words, minlength=self.words).astype(np.float32)
+        residuals = blocks.numpy() - counts[:, None] * self.centroids
+        flat = l2_normalize(residuals, axis=1).reshape(-1)
+        return l2_normalize(np.sign(flat) * np.sqrt(np.abs(flat)))
 
     def state(self) -> dict[str, np.ndarray]:
         return {"centroids": self.centroids}
+
+
+def _as_float32(descriptors: np.ndarray) -> torch.Tensor:
+    """``descriptors`` as a float32 tensor (stored blobs are read-only: those are copied first,
+    as torch only wraps writable arrays)."""
+    return torch.from_numpy(np.require(descriptors, requirements=("C", "W"))).to(torch.float32)

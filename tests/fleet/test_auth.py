@@ -260,6 +260,7 @@ def test_failed_authentications_are_logged_and_limited_per_address(
     with TestClient(
         create_app(settings, pipeline=pipeline), client=("10.0.0.9", 5000)
     ) as other:  # another address is not affected
+        wait_ready(other)
         assert other.get("/v1/atlases", headers=bearer(valid)).status_code == 200
 
 

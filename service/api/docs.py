@@ -20,7 +20,11 @@ STATIC_URL = "/docs-static"
 
 
 def install_offline_docs(app: FastAPI) -> None:
-    """Add ``/docs`` and ``/redoc`` to an app built with ``docs_url=None, redoc_url=None``."""
+    """Add ``/docs`` and ``/redoc`` to an app built with ``docs_url=None, redoc_url=None``.
+
+    The pages read the app from the request, never from this closure: FastAPI caches endpoint
+    functions process-wide, so an endpoint closing over its app keeps the whole app (models,
+    indexes) alive after it is shut down."""
     app.mount(STATIC_URL, StaticFiles(directory=STATIC_DIR), name="docs-static")
     openapi_url = app.openapi_url or "/openapi.json"
 
@@ -29,7 +33,7 @@ def install_offline_docs(app: FastAPI) -> None:
         root = request.scope.get("root_path", "")
         return get_swagger_ui_html(
             openapi_url=f"{root}{openapi_url}",
-            title=f"{app.title} - Swagger UI",
+            title=f"{request.app.title} - Swagger UI",
             swagger_js_url=f"{root}{STATIC_URL}/swagger-ui-bundle.js",
             swagger_css_url=f"{root}{STATIC_URL}/swagger-ui.css",
             swagger_favicon_url=f"{root}{STATIC_URL}/favicon.png",
@@ -40,7 +44,7 @@ def install_offline_docs(app: FastAPI) -> None:
         root = request.scope.get("root_path", "")
         return get_redoc_html(
             openapi_url=f"{root}{openapi_url}",
-            title=f"{app.title} - ReDoc",
+            title=f"{request.app.title} - ReDoc",
             redoc_js_url=f"{root}{STATIC_URL}/redoc.standalone.js",
             redoc_favicon_url=f"{root}{STATIC_URL}/favicon.png",
             with_google_fonts=False,

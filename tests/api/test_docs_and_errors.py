@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import re
+import weakref
 from pathlib import Path
 
 import pytest
@@ -29,6 +31,21 @@ def test_docs_reference_only_same_origin_assets_that_are_served(
     assert not re.search(r"https?://", html.text)
     spec_url = re.search(r"(?:url: '|spec-url=\")([^'\"]+)", html.text)
     assert spec_url and client.get(spec_url.group(1)).status_code == 200
+
+
+def test_a_stopped_app_is_freed(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    """Nothing process-wide keeps an app (and its models, indexes, engine) once it has stopped:
+    the /docs endpoints once closed over theirs, FastAPI cached them, and a test run grew to
+    17 GB."""
+    from service.api.app import create_app
+
+    with TestClient(create_app(make_settings(tmp_path / "data"), pipeline=pipeline)) as client:
+        wait_ready(client)
+        assert client.get("/docs").status_code == 200
+        runtime = weakref.ref(client.app.state.runtime)  # type: ignore[attr-defined]
+    del client
+    gc.collect()
+    assert runtime() is None
 
 
 def assert_error_shape(response, status: int) -> dict:  # type: ignore[no-untyped-def]

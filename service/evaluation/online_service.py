@@ -45,7 +45,8 @@ def service_observations(
     consistency: int,
 ) -> list[tuple[int, float, int, float]]:
     """``(reference, score, length, ms)`` for every frame in order: the reference is the frame
-    index the service answered (-1: none), the score the sequence score (L > 1) or the cosine."""
+    index the service answered (-1: none), the score the sequence's margin over its best rival
+    place (L > 1) or the cosine."""
     from service.runtime import Runtime
 
     # the atlas's untrained heads fuse at the method's alpha (a copy: the CNNs are shared)

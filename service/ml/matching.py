@@ -114,10 +114,12 @@ class MutualNearestNeighbours:
         da = _unit(a.descriptors)
         counts = [candidates[i].count for i in present]
         stacked = _unit(np.concatenate([candidates[i].descriptors for i in present]))
-        # torch's product and column-wise argmax: about twice numpy's speed here.
         product = torch.from_numpy(da) @ torch.from_numpy(stacked).T
         similarity = product.numpy()  # M x (all candidates' keypoints)
-        nearest_ba = product.argmax(dim=0).numpy()  # per stacked column: the nearest row
+        # Per stacked column its best similarity: a column-wise max runs at memory speed where
+        # a column-wise argmax (torch's or numpy's) is 20-30x slower (1024 x 5 x 1024
+        # keypoints: 1.1 against 32 ms); a row is mutual when its best reaches its column's.
+        column_best = product.amax(dim=0).numpy()
         # Each candidate's columns side by side in one M x K x Nmax block, so the row-wise
         # best and second best of every candidate come from one pass each: a view when all
         # candidates have as many keypoints (the usual case), else padded with -inf.
@@ -131,15 +133,16 @@ class MutualNearestNeighbours:
                 block[:, k, : end - start] = similarity[:, start:end]
         nearest_ab = block.argmax(axis=2)  # M x K, column within the candidate
         best = np.take_along_axis(block, nearest_ab[..., None], axis=2)[..., 0]
-        np.put_along_axis(block, nearest_ab[..., None], -np.inf, axis=2)
+        mutual = best == column_best[starts[:-1][None, :] + nearest_ab]
+        mutual = _first_row_per_column(mutual, nearest_ab)
+        np.put_along_axis(block, nearest_ab[..., None], -np.inf, axis=2)  # may write similarity
         second = block.max(axis=2)
         distance = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
         second_distance = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
         single = np.array(counts) == 1  # no second neighbour: no ratio test
         passes = (distance < self.ratio * second_distance) | single[None, :]
         for k, i in enumerate(present):
-            mutual = nearest_ba[starts[k] + nearest_ab[:, k]] == rows
-            keep = mutual & passes[:, k]
+            keep = mutual[:, k] & passes[:, k]
             pairs = np.stack([rows[keep], nearest_ab[keep, k]], axis=1).astype(np.int64)
             found[i] = Matches(pairs, best[keep, k].astype(np.float32))
         return found
@@ -192,6 +195,18 @@ class LightGlueMatcher:
     ) -> list[Matches]:
         """One LightGlue pass per candidate (the network attends across each pair)."""
         return [self.match(a, size_a, b, size_b) for b, size_b in candidates]
+
+
+def _first_row_per_column(mutual: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+    """``mutual`` (M x K) keeping, of the rows that claim one column of a candidate, only the
+    first, as a column-wise argmax picks it: two rows reach a column's best exactly only when
+    their descriptors are equal (duplicated keypoints)."""
+    kept = np.zeros_like(mutual)
+    for k in range(mutual.shape[1]):
+        rows = np.flatnonzero(mutual[:, k])
+        _, first = np.unique(nearest[rows, k], return_index=True)
+        kept[rows[first], k] = True
+    return kept
 
 
 def _unit(descriptors: np.ndarray) -> np.ndarray:

@@ -187,6 +187,61 @@ def test_mnn_of_many_candidates_is_each_pair_alone() -> None:
     assert together[0].count >= 25 and together[2].count == 0
 
 
+def _mnn_by_definition(a: np.ndarray, b: np.ndarray, ratio: float) -> set[tuple[int, int]]:
+    """Mutual nearest neighbours with the ratio test, written out pair by pair (argmax picks the
+    first of tied rows or columns)."""
+    unit_a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    unit_b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    similarity = unit_a @ unit_b.T
+    found = set()
+    for i in range(len(a)):
+        j = int(np.argmax(similarity[i]))
+        if int(np.argmax(similarity[:, j])) != i:
+            continue
+        others = np.delete(similarity[i], j)
+        if len(others):
+            distance, second = (
+                np.sqrt(np.maximum(2 - 2 * similarity[i, j], 0)),
+                np.sqrt(np.maximum(2 - 2 * others.max(), 0)),
+            )
+            if not distance < ratio * second:
+                continue
+        found.add((i, j))
+    return found
+
+
+def test_mnn_matches_the_definition_with_duplicated_descriptors() -> None:
+    """The column-wise max shortcut gives exactly the pairs of the definition, also where
+    keypoints share a descriptor (exact ties: only the first row of a column is mutual) and
+    where candidates have different numbers of keypoints."""
+    rng = np.random.default_rng(3)
+    query = rng.standard_normal((60, 8)).astype(np.float32)
+    query[10] = query[3]  # duplicated keypoints in the query ...
+    candidates = []
+    for count in (45, 60, 30):
+        b = query[rng.permutation(60)[:count]] + 0.2 * rng.standard_normal((count, 8)).astype(
+            np.float32
+        )
+        b[5] = b[2]  # ... and in a candidate
+        candidates.append(b)
+    matcher = MutualNearestNeighbours(0.95)
+    together = matcher.match_many(
+        LocalFeatures(np.zeros((60, 2), np.float32), query, np.ones(60, np.float32)),
+        (1, 1),
+        [
+            (
+                LocalFeatures(np.zeros((len(b), 2), np.float32), b, np.ones(len(b), np.float32)),
+                (1, 1),
+            )
+            for b in candidates
+        ],
+    )
+    for b, matches in zip(candidates, together, strict=True):
+        expected = _mnn_by_definition(query, b, 0.95)
+        assert set(map(tuple, matches.pairs.tolist())) == expected
+        assert len(expected) >= 10
+
+
 def test_mnn_keeps_only_mutual_unambiguous_pairs() -> None:
     d = np.eye(4, dtype=np.float32)
     a = LocalFeatures(np.zeros((4, 2), np.float32), d, np.ones(4, np.float32))

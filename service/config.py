@@ -172,6 +172,12 @@ class Settings(BaseSettings):
         description="Concurrent frames arriving within this window share one CNN batch; 0: off.",
     )
     max_batch: int = Field(8, ge=1, le=256, description="Most frames in one CNN batch.")
+    parallel_branches: Literal["auto", "on", "off"] = Field(
+        "auto",
+        description="Run a frame's local extractor and global backbone side by side in two "
+        "threads: 'auto' = when torch threads x 2 <= cores (e.g. LOOPNET_TORCH_THREADS=1 on 2 "
+        "cores).",
+    )
     inference_queue: int = Field(
         16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
     )
@@ -253,9 +259,9 @@ class Settings(BaseSettings):
     def snapshot_limits(self) -> ArchiveLimits:
         return ArchiveLimits(self.snapshot_max_member_bytes, self.snapshot_max_total_bytes)
 
-    def pipeline_options(self) -> tuple[str, float, int]:
-        """FeaturePipeline's precision, batch_window_ms and max_batch."""
-        return self.precision, self.batch_window_ms, self.max_batch
+    def pipeline_options(self) -> tuple[str, float, int, Literal["auto", "on", "off"]]:
+        """FeaturePipeline's precision, batch_window_ms, max_batch and parallel_branches."""
+        return self.precision, self.batch_window_ms, self.max_batch, self.parallel_branches
 
     def preset(self) -> ModelPreset:
         from service.ml.presets import resolve_preset

@@ -3,8 +3,10 @@ evaluation harness share."""
 
 from __future__ import annotations
 
+import os
 import time
-from typing import NamedTuple
+from concurrent.futures import ThreadPoolExecutor
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -14,7 +16,7 @@ from torch import nn
 from service.ml.aggregation import aggregate_descriptors
 from service.ml.backbones import GlobalBackbone, build_backbone
 from service.ml.batching import MicroBatcher
-from service.ml.features import FrameFeatures
+from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
 from service.ml.precision import Precision, resolve_precision
@@ -27,7 +29,9 @@ class FeaturePipeline:
     ``precision`` is "auto" (bf16 where the CPU computes it natively), "fp32" or "bf16"; it is
     not part of the signature: bf16 features stay within the accuracy guard of fp32 ones, so an
     atlas mixes them. With ``batch_window_ms`` > 0, concurrent :meth:`extract` calls arriving
-    within that window run as one batch of up to ``max_batch`` frames.
+    within that window run as one batch of up to ``max_batch`` frames. With
+    ``parallel_branches`` on, the global backbone runs in a second thread while the local
+    extractor runs (see :func:`branches_in_parallel`).
     """
 
     def __init__(
@@ -36,6 +40,7 @@ class FeaturePipeline:
         precision: str = "fp32",
         batch_window_ms: float = 0.0,
         max_batch: int = 8,
+        parallel_branches: ParallelBranches = "auto",
     ) -> None:
         self.preset = preset
         self.precision: Precision = resolve_precision(precision)
@@ -44,6 +49,16 @@ class FeaturePipeline:
         self.batcher: MicroBatcher[np.ndarray, FrameFeatures] = MicroBatcher(
             self.extract_batch, batch_window_ms / 1000.0, max_batch
         )
+        self._branch_pool = (
+            ThreadPoolExecutor(1, thread_name_prefix="loopnet-global-branch")
+            if branches_in_parallel(parallel_branches)
+            else None
+        )
+
+    @property
+    def parallel_branches(self) -> bool:
+        """Whether the two CNNs of a frame run side by side."""
+        return self._branch_pool is not None
 
     @property
     def signature(self) -> FeatureSignature:
@@ -66,12 +81,14 @@ class FeaturePipeline:
     def extract_batch(self, rgbs: list[np.ndarray]) -> list[FrameFeatures]:
         """:meth:`extract` of several frames, each network run once per batch (frames of
         different sizes are grouped by working size). Timings are the whole batch's."""
-        start = time.perf_counter()
-        local = self.local.extract_batch(rgbs)
-        local_ms = _ms_since(start)
-        start = time.perf_counter()
-        global_vectors = self.backbone.describe_batch(rgbs)
-        timings = {"local_features": local_ms, "global_features": _ms_since(start)}
+        if self._branch_pool is not None:
+            described = self._branch_pool.submit(self._describe_timed, rgbs)
+            local, local_ms = self._extract_timed(rgbs)
+            global_vectors, global_ms = described.result()
+        else:
+            local, local_ms = self._extract_timed(rgbs)
+            global_vectors, global_ms = self._describe_timed(rgbs)
+        timings = {"local_features": local_ms, "global_features": global_ms}
         return [
             FrameFeatures(
                 local=one,
@@ -82,6 +99,27 @@ class FeaturePipeline:
             )
             for rgb, one, vector in zip(rgbs, local, global_vectors, strict=True)
         ]
+
+    def _extract_timed(self, rgbs: list[np.ndarray]) -> tuple[list[LocalFeatures], float]:
+        start = time.perf_counter()
+        return self.local.extract_batch(rgbs), _ms_since(start)
+
+    def _describe_timed(self, rgbs: list[np.ndarray]) -> tuple[np.ndarray, float]:
+        start = time.perf_counter()
+        return self.backbone.describe_batch(rgbs), _ms_since(start)
+
+
+ParallelBranches = Literal["auto", "on", "off"]
+
+
+def branches_in_parallel(setting: ParallelBranches) -> bool:
+    """Whether a frame's local extractor and global backbone run side by side, each in its
+    own thread: "auto" = when the intra-op threads of both leave no core idle beside the other
+    and oversubscribe none (torch threads x 2 <= cores), e.g. one torch thread on 2 cores,
+    where a fast-preset query's CNNs then take the longer branch's time instead of the sum."""
+    if setting != "auto":
+        return setting == "on"
+    return torch.get_num_threads() * 2 <= (os.cpu_count() or 1)
 
 
 @torch.inference_mode()

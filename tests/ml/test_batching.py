@@ -129,7 +129,39 @@ def test_batching_settings_let_a_batch_fill(tmp_path) -> None:  # type: ignore[n
 
     on = Settings(data_dir=tmp_path, batch_window_ms=5, max_batch=8, torch_threads=1)
     assert on.inference_workers == 8 * default_workers(1)
-    assert on.pipeline_options() == ("auto", 5.0, 8)
+    assert on.pipeline_options() == ("auto", 5.0, 8, "auto")
     assert Settings(data_dir=tmp_path).inference_workers is None  # off: unchanged default
     chosen = Settings(data_dir=tmp_path, batch_window_ms=5, inference_workers=3)
     assert chosen.inference_workers == 3
+
+
+def test_branches_side_by_side_give_the_same_features() -> None:
+    """The global backbone in its own thread, beside the local extractor, for concurrent
+    callers: every frame gets exactly the features of the two branches run one after the
+    other."""
+    from service.ml.images import decode_image
+
+    frames = [decode_image(gardens_point_day_night(i, "query")) for i in range(4)]
+    one_after = FeaturePipeline(resolve_preset("fast"), precision="fp32", parallel_branches="off")
+    side_by_side = FeaturePipeline(resolve_preset("fast"), precision="fp32", parallel_branches="on")
+    assert side_by_side.parallel_branches and not one_after.parallel_branches
+    want = [one_after.extract(rgb) for rgb in frames]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(side_by_side.extract, frames * 2))
+    for i, features in enumerate(got):
+        reference = want[i % 4]
+        assert np.array_equal(features.global_vector, reference.global_vector)
+        assert np.array_equal(features.local.keypoints, reference.local.keypoints)
+        assert np.array_equal(features.local.descriptors, reference.local.descriptors)
+        assert set(features.timings_ms) == {"local_features", "global_features"}
+
+
+def test_parallel_branches_auto_needs_a_core_per_branch(monkeypatch: pytest.MonkeyPatch) -> None:
+    from service.ml import pipeline
+
+    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(pipeline.torch, "get_num_threads", lambda: 1)
+    assert pipeline.branches_in_parallel("auto")
+    monkeypatch.setattr(pipeline.torch, "get_num_threads", lambda: 2)
+    assert not pipeline.branches_in_parallel("auto")  # 4 threads on 2 cores: oversubscribed
+    assert pipeline.branches_in_parallel("on") and not pipeline.branches_in_parallel("off")

@@ -81,3 +81,36 @@ def test_save_and_load_round_trip(tmp_path: Path) -> None:
 def test_alpha_out_of_range_is_refused() -> None:
     with pytest.raises(ValueError, match="alpha"):
         HeadsConfig(local_dim=8, global_dim=12, alpha=1.5)
+
+
+def test_an_untrained_fusion_concatenates_and_a_changed_one_multiplies() -> None:
+    """The block-identity shortcut gives the product's exact values, and is dropped as soon
+    as a projection changes (an optimiser step, ``load_state_dict``)."""
+    config = HeadsConfig(local_dim=8, global_dim=24, alpha=0.7)
+    heads = LoopNetHeads(config).eval()
+    local, global_ = torch.randn(5, 8), torch.randn(5, 24)
+    with torch.inference_mode():
+        assert heads.fusion.is_block_identity()
+        fast = heads.embed(local, global_)
+    heads.fusion._blocks = False  # force the products
+    heads.fusion._blocks_checked = (-1,)
+    with torch.no_grad():
+        slow = heads.similarity(
+            0.7 * heads.fusion.project_local(local)
+            + 0.3 * heads.fusion.project_global(global_)
+            + heads.fusion.bias
+        )
+    assert torch.equal(fast, slow)
+    with torch.inference_mode():
+        assert heads.fusion.is_block_identity()  # checked again, and cached
+    changed = LoopNetHeads(config)
+    with torch.no_grad():
+        changed.fusion.project_global.weight.mul_(2.0)
+    heads.load_state_dict(changed.state_dict())
+    with torch.inference_mode():
+        assert not heads.fusion.is_block_identity()
+        assert not torch.allclose(heads.embed(local, global_), fast)
+    # while autograd records, the products run (the projections must get gradients)
+    trainable = LoopNetHeads(config)
+    trainable.embed(local, global_).sum().backward()
+    assert trainable.fusion.project_global.weight.grad is not None

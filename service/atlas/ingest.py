@@ -84,17 +84,22 @@ class FrameIngest:
             )
         return atlas
 
-    def extract(self, image_bytes: bytes) -> tuple[FrameFeatures, float]:
-        """Decode and run the CNNs in one of the gate's slots; returns the features and the
-        decode time in ms. Raises Overloaded when every slot is busy and the queue is full."""
+    def extract(
+        self, image_bytes: bytes, *, thumbnail: bool = True
+    ) -> tuple[FrameFeatures, float, np.ndarray]:
+        """Decode and run the CNNs in one of the gate's slots; returns the features (with their
+        thumbnail unless ``thumbnail`` is False: a query makes one only if a loop closes), the
+        decode time in ms and the decoded frame. Raises Overloaded when every slot is busy
+        and the queue is full."""
         with self.inference.slot():
             start = time.perf_counter()
             rgb = decode_image(image_bytes, self.settings.image_limits)
             decode_ms = (time.perf_counter() - start) * 1000.0
             features = self.pipeline.extract(rgb)
-            features.thumbnail = make_thumbnail(rgb)
+            if thumbnail:
+                features.thumbnail = make_thumbnail(rgb)
         observe_stages({"decode": decode_ms, **features.timings_ms})
-        return features, decode_ms
+        return features, decode_ms, rgb
 
     def ingest_frame(self, *, atlas_name: str, fields: FrameFields, image_bytes: bytes) -> Frame:
         """Store a frame, its features and its embedding; nothing is written if any step fails."""
@@ -102,7 +107,7 @@ class FrameIngest:
         with self.sessions() as session:
             atlas = self.checked_atlas(session, atlas_name)
             repo.get_submap(session, atlas=atlas, name=fields.submap_name)
-        features, _ = self.extract(image_bytes)
+        features, _, _ = self.extract(image_bytes)
         return self.store(atlas_name=atlas_name, fields=fields, features=features)
 
     def ingest_features(

@@ -70,7 +70,7 @@ class Observations:
         """
         total_start = time.perf_counter()
         robot = self._check_observation(atlas_name, fields, k, query_filter, sequence_length)
-        features, decode_ms = self.ingest.extract(image_bytes)
+        features, decode_ms, _ = self.ingest.extract(image_bytes)
         result, frame = self._observe(atlas_name, fields, features, query_filter, k, robot)
         return with_extraction_timings(result, features, decode_ms, total_start), frame
 

@@ -39,6 +39,7 @@ from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics
 from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import PlaceStatus
+from service.ml.thumbnails import make_thumbnail
 from service.ml.verification import Verification, View, decide, rerank
 from service.storage import repository as repo
 from service.storage.feature_store import load_local_features
@@ -125,8 +126,10 @@ class AtlasQueries(Observations):
         robot = self.robot_context(query_filter, query_filter.timestamp, sequence_length)
         with self.sessions() as session:
             self._check_targets(session, atlas_name, query_filter, None)
-        features, decode_ms = self.ingest.extract(image_bytes)
+        features, decode_ms, rgb = self.ingest.extract(image_bytes, thumbnail=False)
         result = self._search(atlas_name, features, k, query_filter, intrinsics, robot)
+        if result.loop_closure:  # the console shows a recorded loop closure's query image
+            features.thumbnail = make_thumbnail(rgb)
         return with_extraction_timings(result, features, decode_ms, total_start)
 
     def query_features(

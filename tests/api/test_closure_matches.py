@@ -108,6 +108,10 @@ def test_a_query_closure_keeps_no_frame_so_its_matches_are_404(client: TestClien
     assert closure["source"] == "query"
     detail = client.get(f"/v1/atlases/campus/loop-closures/{closure['id']}").json()
     assert detail["query_frame_id"] is None
+    # a query makes its thumbnail only when a loop closes, and this one is kept
+    assert detail["query_thumbnail"] is True
+    thumbnail = client.get(f"/v1/atlases/campus/loop-closures/{closure['id']}/query-thumbnail")
+    assert thumbnail.status_code == 200 and thumbnail.content[:2] == b"\xff\xd8"
     missing = client.get(f"/v1/atlases/campus/loop-closures/{closure['id']}/matches")
     assert missing.status_code == 404
     assert "only kept for observed frames" in missing.json()["detail"]

@@ -4,6 +4,7 @@ evaluation harness share."""
 from __future__ import annotations
 
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal, NamedTuple
@@ -54,6 +55,11 @@ class FeaturePipeline:
             if branches_in_parallel(parallel_branches)
             else None
         )
+        # Side by side only while this is the one frame being extracted: under load every core
+        # already runs a frame, and a second thread per frame only adds hand-offs (8 robots
+        # ingesting: 25.4-26.5 frames/s side by side against 26.9-28.4 one after the other).
+        self._running = 0
+        self._running_lock = threading.Lock()
 
     @property
     def parallel_branches(self) -> bool:
@@ -81,13 +87,21 @@ class FeaturePipeline:
     def extract_batch(self, rgbs: list[np.ndarray]) -> list[FrameFeatures]:
         """:meth:`extract` of several frames, each network run once per batch (frames of
         different sizes are grouped by working size). Timings are the whole batch's."""
-        if self._branch_pool is not None:
-            described = self._branch_pool.submit(self._describe_timed, rgbs)
-            local, local_ms = self._extract_timed(rgbs)
-            global_vectors, global_ms = described.result()
-        else:
-            local, local_ms = self._extract_timed(rgbs)
-            global_vectors, global_ms = self._describe_timed(rgbs)
+        with self._running_lock:
+            self._running += 1
+            side_by_side = self._branch_pool is not None and self._running == 1
+        try:
+            if side_by_side:
+                assert self._branch_pool is not None
+                described = self._branch_pool.submit(self._describe_timed, rgbs)
+                local, local_ms = self._extract_timed(rgbs)
+                global_vectors, global_ms = described.result()
+            else:
+                local, local_ms = self._extract_timed(rgbs)
+                global_vectors, global_ms = self._describe_timed(rgbs)
+        finally:
+            with self._running_lock:
+                self._running -= 1
         timings = {"local_features": local_ms, "global_features": global_ms}
         return [
             FrameFeatures(

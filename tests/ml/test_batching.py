@@ -136,18 +136,28 @@ def test_batching_settings_let_a_batch_fill(tmp_path) -> None:  # type: ignore[n
 
 
 def test_branches_side_by_side_give_the_same_features() -> None:
-    """The global backbone in its own thread, beside the local extractor, for concurrent
-    callers: every frame gets exactly the features of the two branches run one after the
-    other."""
+    """The global backbone in its own thread, beside the local extractor (for a frame alone;
+    concurrent frames run their branches one after the other): every frame gets exactly the
+    features of the two branches run one after the other."""
     from service.ml.images import decode_image
 
     frames = [decode_image(gardens_point_day_night(i, "query")) for i in range(4)]
     one_after = FeaturePipeline(resolve_preset("fast"), precision="fp32", parallel_branches="off")
     side_by_side = FeaturePipeline(resolve_preset("fast"), precision="fp32", parallel_branches="on")
     assert side_by_side.parallel_branches and not one_after.parallel_branches
+    threads: list[str] = []
+    describe = side_by_side._describe_timed
+
+    def recording(rgbs: list[np.ndarray]) -> tuple[np.ndarray, float]:
+        threads.append(threading.current_thread().name)
+        return describe(rgbs)
+
+    side_by_side._describe_timed = recording  # type: ignore[method-assign]
     want = [one_after.extract(rgb) for rgb in frames]
-    with ThreadPoolExecutor(4) as pool:
-        got = list(pool.map(side_by_side.extract, frames * 2))
+    got = [side_by_side.extract(rgb) for rgb in frames]  # one at a time: side by side
+    assert all(name.startswith("loopnet-global-branch") for name in threads)
+    with ThreadPoolExecutor(4) as pool:  # concurrent frames: one after the other, mostly
+        got += list(pool.map(side_by_side.extract, frames))
     for i, features in enumerate(got):
         reference = want[i % 4]
         assert np.array_equal(features.global_vector, reference.global_vector)

@@ -167,11 +167,15 @@ def test_branches_side_by_side_give_the_same_features() -> None:
 
 
 def test_parallel_branches_auto_needs_a_core_per_branch(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    import torch
+
     from service.ml import pipeline
 
-    monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 2)
-    monkeypatch.setattr(pipeline.torch, "get_num_threads", lambda: 1)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     assert pipeline.branches_in_parallel("auto")
-    monkeypatch.setattr(pipeline.torch, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     assert not pipeline.branches_in_parallel("auto")  # 4 threads on 2 cores: oversubscribed
     assert pipeline.branches_in_parallel("on") and not pipeline.branches_in_parallel("off")

@@ -259,7 +259,8 @@ def _frames(
             features.local = local.get(path.resolve(), features.local)
             yield features, decode_ms, True
         else:
-            yield (*service.extract(path.read_bytes()), False)
+            features, decode_ms, _ = service.extract(path.read_bytes())
+            yield features, decode_ms, False
 
 
 def run_service_pass(

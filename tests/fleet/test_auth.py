@@ -298,6 +298,7 @@ def test_cli_creates_lists_and_revokes_keys(
 
     monkeypatch.setenv("LOOPNET_DATA_DIR", str(tmp_path / "data"))
     with TestClient(create_app(make_settings(tmp_path / "data"), pipeline=pipeline)) as client:
+        wait_ready(client)
         for name in ("a", "b"):
             assert client.post("/v1/atlases", json={"name": name}).status_code == 201
         api_keys = client.get("/v1/keys")

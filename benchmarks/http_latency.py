@@ -34,6 +34,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from load import cpu_seconds  # the sibling script (its folder is on the path)
 
 from service.atlas.ingest import FrameFields
 from service.features_payload import encode_features
@@ -45,12 +46,6 @@ ROOT = Path(__file__).resolve().parents[1]
 # the frames live in ../shared beside the repository, like the test suite's (override with
 # LOOPNET_SHARED_DIR)
 DATA = Path(os.environ.get("LOOPNET_SHARED_DIR", ROOT.parent / "shared")) / "data"
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds a process has used so far (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 @contextmanager

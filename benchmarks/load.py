@@ -135,6 +135,8 @@ class LoadReport:
     statuses: Counter[str] = field(default_factory=Counter)
     errors: list[str] = field(default_factory=list)
     retry_after_s: list[int] = field(default_factory=list)
+    client_cpu_s: float = 0.0  # the load generator's own CPU (it shares the machine)
+    server_cpu_s: float | None = None  # the started server's, when this run started it
 
     def count(self, operation: str) -> int:
         return len(self.latencies_ms.get(operation, []))
@@ -176,6 +178,16 @@ class LoadReport:
             )
         lines.append(f"  errors: {len(self.errors)}")
         lines.extend(f"    {e}" for e in self.errors[:10])
+        answered = sum(self.count(op) for op in ("ingest", "query"))
+        if answered:
+            cpu = f"  CPU per answered request: load generator {1000 * self.client_cpu_s / answered:.1f} ms"
+            if self.server_cpu_s is not None:
+                cores = os.cpu_count() or 1
+                cpu += (
+                    f", server {1000 * self.server_cpu_s / answered:.1f} ms (the server alone "
+                    f"on {cores} idle cores: {answered * cores / self.server_cpu_s:.1f}/s at most)"
+                )
+            lines.append(cpu)
         return "\n".join(lines)
 
 
@@ -195,6 +207,14 @@ class _Images:
             data = self._data[self._next % len(self._data)]
             self._next += 1
             return data
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds the process ``pid`` has used so far, all its threads (Linux
+    /proc): what requests cost the machine, which other jobs do not inflate as they do wall
+    time."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _check_loopback(url: str) -> None:
@@ -217,8 +237,9 @@ def prepare_atlas(url: str, config: LoadConfig) -> None:
                 raise RuntimeError(f"creating a submap failed: {submap.text}")
 
 
-def run_load(url: str, config: LoadConfig) -> LoadReport:
-    """Run the robots against a ready server at ``url`` and collect what they saw."""
+def run_load(url: str, config: LoadConfig, server_pid: int | None = None) -> LoadReport:
+    """Run the robots against a ready server at ``url`` and collect what they saw (and the CPU
+    that the server ``server_pid``, when given, and the load generator spent meanwhile)."""
     _check_loopback(url)
     prepare_atlas(url, config)
     images = _Images(config.images)
@@ -245,13 +266,17 @@ def run_load(url: str, config: LoadConfig) -> LoadReport:
                 if time.monotonic() >= deadline:
                     return
 
-    start = time.perf_counter()
+    start, client_cpu = time.perf_counter(), time.process_time()
+    server_cpu = cpu_seconds(server_pid) if server_pid is not None else None
     threads = [threading.Thread(target=robot, args=(i,)) for i in range(config.robots)]
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
     report.wall_s = time.perf_counter() - start
+    report.client_cpu_s = time.process_time() - client_cpu
+    if server_pid is not None and server_cpu is not None:
+        report.server_cpu_s = cpu_seconds(server_pid) - server_cpu
     return report
 
 
@@ -328,7 +353,8 @@ def main() -> int:
             tempfile.TemporaryDirectory() as tmp,
             LiveServer(Path(tmp) / "data", server_env) as server,
         ):
-            report = run_load(server.url, config)
+            assert server.process is not None
+            report = run_load(server.url, config, server_pid=server.process.pid)
     print(report.summary())
     return 1 if report.errors else 0
 

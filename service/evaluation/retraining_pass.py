@@ -16,7 +16,8 @@ Rankings are over the reference frames only. The starting rows are re-scored on 
 queries, so each "before -> after" pair compares like with like. With a calibration (the
 service path), the heads train on the calibrated branches and start from the calibrated service
 row, as a retraining job starts from the latest calibration; the trained embedding's scores come
-from an impostor model refitted on the references' trained embeddings, as the job refits it.
+from the impostor model the job refits (:func:`retrained_impostor_model`, on the stored
+references). Without a calibration the job keeps no impostor model: the rows rank by cosine.
 """
 
 from __future__ import annotations
@@ -34,9 +35,10 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, rank_by_similarity
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.evaluation.service_pass import PassResult
+from service.ml.calibration import Calibration, CalibrationInputs
 from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.impostors import impostor_model_of
 from service.ml.pipeline import embed_vectors
+from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import TrainingConfig, TrainingData, split_shots, train_heads
 
 PROTOCOLS = ("map", "revisit")
@@ -52,7 +54,12 @@ class StartingPoint:
     queries: tuple[np.ndarray, np.ndarray]
     base: HeadsConfig
     before: MethodResult
-    calibrated: bool
+    calibration: Calibration | None = None
+    stored: CalibrationInputs | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calibration is not None
 
     @classmethod
     def of(
@@ -62,9 +69,18 @@ class StartingPoint:
         if calibrated is None:
             local, global_ = result.reference_vectors
             base = HeadsConfig(local.shape[1], global_.shape[1], alpha=result.preset.alpha)
-            return cls(result.reference_vectors, result.query_vectors, base, before, False)
-        base = calibrated.calibration.heads_config()
-        return cls(calibrated.references, calibrated.queries, base, before, True)
+            return cls(result.reference_vectors, result.query_vectors, base, before)
+        if result.stored_references is None:
+            raise RuntimeError("the service pass kept no stored references to refit scores on")
+        calibration = calibrated.calibration
+        return cls(
+            calibrated.references,
+            calibrated.queries,
+            calibration.heads_config(),
+            before,
+            calibration,
+            result.stored_references,
+        )
 
 
 @dataclass
@@ -154,17 +170,14 @@ def _rows(ranking: Ranking, keep: np.ndarray) -> Ranking:
     return Ranking(ranking.indices[keep], ranking.scores[keep])
 
 
-def _scored(references: np.ndarray, ranking: Ranking, seed: int) -> tuple[Ranking, str]:
-    """The ranking with calibrated scores from an impostor model refitted on the references'
-    trained embeddings (the job's refit), or with cosines where the map is too small for one."""
-    try:
-        impostors = impostor_model_of(
-            references, [MAP_ROBOT] * len(references), np.arange(len(references)), seed=seed
-        )
-    except ValueError:
-        return ranking, "cosine (too few references for an impostor model)"
+def _scored(heads: LoopNetHeads, start: StartingPoint, ranking: Ranking) -> tuple[Ranking, str]:
+    """The ranking with the calibrated scores of the impostor model the job refits for the
+    trained heads, or with cosines where there is no calibration (nor, in the job, a score)."""
+    if start.calibration is None or start.stored is None:
+        return ranking, "cosine (uncalibrated start: the job keeps no impostor model)"
+    impostors = retrained_impostor_model(heads, start.calibration, start.stored)
     scored = Ranking(ranking.indices, impostors.score(ranking.scores))
-    return scored, "calibrated: -log10 P(impostor cosine >= c), impostors refitted"
+    return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
 
 
 def retraining_rows(
@@ -229,7 +242,7 @@ def retraining_rows(
             ranking = rank_by_similarity(embed_vectors(heads, *test_vectors) @ references.T, k)
             per_query = (time.perf_counter() - started) * 1000.0 / max(len(test), 1)
             cosine_top = ranking.scores[:, 0].copy()
-            ranking, score_text = _scored(references, ranking, config.seed)
+            ranking, score_text = _scored(heads, start, ranking)
             subset = _subset(dataset, test)
             right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
             used = shots_used(ref_submaps, map_shots)

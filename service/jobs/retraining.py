@@ -30,8 +30,7 @@ from service.index.builder import add_stored_frames, load_model_inputs
 from service.jobs.calibration import run_calibration
 from service.ml.active_model import ActiveModel
 from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.impostors import impostor_model_of
-from service.ml.pipeline import embed_vectors
+from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import (
     TrainingCancelled,
     TrainingConfig,
@@ -43,6 +42,7 @@ from service.ml.training import (
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.feature_store import load_calibration_inputs
 from service.storage.models import Atlas, Job, JobStatus
 
 log = logging.getLogger(__name__)
@@ -160,11 +160,13 @@ class JobRunner:
         result.heads.save(weights)
         version_calibration = None
         if calibration is not None and active_config.calibration is not None:
-            # a trained embedding changes what a cosine means: refit the impostor model on it
-            embeddings = embed_vectors(result.heads, stored.local, stored.global_)
-            calibration.impostors = impostor_model_of(
-                embeddings, stored.robots, stored.ids, seed=config.seed
-            )
+            # a trained embedding changes what a cosine means: refit the impostor model on it,
+            # as the calibration fitted it (unseen frames against seen ones)
+            self._progress(job_id, 76, "refitting the impostor model")
+            with self.sessions() as session:
+                inputs = load_calibration_inputs(session, atlas_id)
+            calibration.impostors = retrained_impostor_model(result.heads, calibration, inputs)
+            del inputs
             path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
             files.append(path)
             calibration.save(path)

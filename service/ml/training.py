@@ -339,6 +339,7 @@ def train_heads(
     progress: ProgressCallback | None = None,
     should_stop: Callable[[], bool] | None = None,
     shot_idx: np.ndarray | None = None,
+    validation_idx: np.ndarray | None = None,
 ) -> TrainingResult:
     """Train new heads for an atlas from its stored vectors.
 
@@ -349,7 +350,9 @@ def train_heads(
             is a rotation of the centred active embedding and loses nothing: a calibrated
             atlas's branches are centred, and epoch 0 ranks as the active version does).
         shot_idx: the training frames (indices into ``data``); None: ``config.shots`` per
-            submap by :func:`split_shots`. The other frames validate.
+            submap by :func:`split_shots`.
+        validation_idx: the frames that pick the best epoch; None: every frame not a shot
+            (the job keeps its held-out stretches out of both, see :mod:`service.ml.held_out`).
         progress: called with (fraction 0..1, message) once per epoch.
         should_stop: polled once per epoch; True raises :class:`TrainingCancelled`.
     """
@@ -374,12 +377,18 @@ def train_heads(
     else:
         train_idx = np.unique(np.asarray(shot_idx, dtype=np.int64))
         val_idx = np.setdiff1d(np.arange(len(data.submaps)), train_idx)
+    if validation_idx is not None:
+        val_idx = np.setdiff1d(np.asarray(validation_idx, dtype=np.int64), train_idx)
     label_index = {label: i for i, label in enumerate(labels)}
     targets = torch.tensor([label_index[int(s)] for s in data.submaps], dtype=torch.long)
     local = torch.from_numpy(data.local)
     global_ = torch.from_numpy(data.global_)
     pairs = contrastive_pairs(data, train_idx, config.positive_window)
-    _init_prototypes(heads, local[train_idx], global_[train_idx], targets[train_idx], len(labels))
+    # a submap without shots (inside a held-out stretch) starts from its frames' mean, so the
+    # classifier can still name it; no gradient ever comes from those frames
+    unshot = np.flatnonzero(~np.isin(data.submaps, data.submaps[train_idx]))
+    start_idx = np.concatenate([train_idx, unshot])
+    _init_prototypes(heads, local[start_idx], global_[start_idx], targets[start_idx], len(labels))
     before = evaluate(heads, data, train_idx, val_idx)
 
     parts = {

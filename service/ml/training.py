@@ -93,6 +93,13 @@ class TrainingConfig:
     frame_temperature: float = Field(
         default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
     )
+    keep_weight: float = Field(
+        default=0.0,
+        ge=0,
+        le=100,
+        description="Weight of the term that keeps the trained cosines of the shots' "
+        "non-positive pairs near the starting heads' (against forgetting); 0: off.",
+    )
     positive_window: int = Field(
         default=2,
         ge=0,
@@ -284,6 +291,15 @@ def _losses(
     return classification, contrastive
 
 
+def keep_loss(embeddings: torch.Tensor, start: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """Mean squared change of the cosines of ``pairs`` (a boolean ``n x n`` mask) from the
+    ``start`` cosines: a distillation of the starting heads on the pairs training does not pull
+    together, so pushing some places apart cannot reshape the rest of the space freely."""
+    if not pairs.any():
+        return embeddings.new_zeros(())
+    return (embeddings @ embeddings.T - start)[pairs].pow(2).mean()
+
+
 VALIDATION_LOSS_SAMPLE = 1024  # validation frames in the (quadratic) contrastive term
 
 
@@ -410,6 +426,10 @@ def train_heads(
         loss = metrics.pop("loss")
         return float(np.mean(list(metrics.values()))), -loss
 
+    with torch.no_grad():  # the starting heads' cosines of the shots' non-positive pairs
+        start_embeddings = heads.embed(local[train_idx], global_[train_idx])
+        start_cosines = start_embeddings @ start_embeddings.T
+        kept_pairs = ~pairs[0] & ~torch.eye(len(train_idx), dtype=torch.bool)
     history: list[dict[str, float]] = []
     best_state = copy.deepcopy(heads.state_dict())
     best_score = validation_score() if len(val_idx) else (0.0, 0.0)
@@ -429,6 +449,9 @@ def train_heads(
         )
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
+        if config.keep_weight > 0:  # on the shots as stored: augmented cosines are lower
+            current = heads.embed(local[train_idx], global_[train_idx])
+            loss = loss + config.keep_weight * keep_loss(current, start_cosines, kept_pairs)
         if config.frame_weight > 0 and len(train_idx) > 1:
             first, second = (
                 heads.embed(

@@ -49,8 +49,8 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = [
         "| protocol | K | train frames | test queries | R@1 | R@5 | submap acc (nearest frame) "
         "| submap acc (classifier) | AUC-PR | R@100%P | top-1 cosine right / wrong (median) "
-        "| train s | epochs (best) |",
-        "|" + " --- |" * 13,
+        "| train s | epochs (best) | gate: held-out acc | served R@1 |",
+        "|" + " --- |" * 15,
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
@@ -71,13 +71,26 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         text = f"{row['epochs_run']} ({row['best_epoch']})"
         return text + ": starting heads" if row["best_epoch"] == 0 else text
 
+    def gate(row: dict[str, Any]) -> str:
+        found = row.get("gate") or {}
+        if found.get("change") is None:
+            return "-"
+        verdict = "passes" if found["not_worse"] else "refuses"
+        return f"{_fmt(found['active'])} → {_fmt(found['new'])} ({found['frames']}): {verdict}"
+
+    def served(row: dict[str, Any]) -> str:
+        if "served_recall@1" not in row:
+            return "-"
+        return f"{_fmt(row['served_recall@1'])} ({row['served']})"
+
     for row in rows:
         lines.append(
             f"| {row['protocol']} | {shots(row)} | {row['train_frames']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} | {arrow('recall@5', row)} "
             f"| {arrow('submap_accuracy', row)} | {_fmt(row['classifier_submap_accuracy'])} "
             f"| {arrow('auc_pr', row)} | {arrow('recall_at_100_precision', row)} "
-            f"| {spread(row)} | {_fmt(row['train_seconds'], 1)} | {epochs(row)} |"
+            f"| {spread(row)} | {_fmt(row['train_seconds'], 1)} | {epochs(row)} "
+            f"| {gate(row)} | {served(row)} |"
         )
     lines += [
         "",
@@ -90,7 +103,10 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         "protocol): K reference frames and K query-condition frames per submap train the heads; "
         "those query frames are not test queries. Rankings are over reference frames only. "
         "Submap accuracy (classifier): the classification head's submap holds a right "
-        "reference. Training uses the retraining job's default parameters.",
+        "reference. Training uses the retraining job's default parameters. Gate: the job's "
+        "not-worse check, the starting and the new heads' accuracy on held-out stretches of the "
+        "map (frames); served R@1: the new version's when the gate passes it, else the "
+        "starting row's.",
     ]
     return "\n".join(lines)
 

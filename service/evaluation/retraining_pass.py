@@ -12,18 +12,21 @@ protocols, both with K shots per submap and test queries that no training step h
   both, and tested on the remaining queries only. Validation (best epoch, early stopping) uses
   map frames only.
 
-Rankings are over the reference frames only. The starting rows are re-scored on the same test
+Training splits the frames as the job does (:func:`split_for_job`: shots and validation outside
+held-out stretches) and each row says what the job's not-worse gate decided on those stretches,
+and so which version the service would serve. Rankings are over the reference frames only. The starting rows are re-scored on the same test
 queries, so each "before -> after" pair compares like with like. With a calibration (the
 service path), the heads train on the calibrated branches and start from the calibrated service
 row, as a retraining job starts from the latest calibration; the trained embedding's scores come
-from an impostor model refitted on the references' trained embeddings, as the job refits it.
+from the impostor model the job refits (:func:`retrained_impostor_model`, on the stored
+references). Without a calibration the job keeps no impostor model: the rows rank by cosine.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -34,9 +37,11 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, rank_by_similarity
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.evaluation.service_pass import PassResult
+from service.ml.calibration import Calibration, CalibrationInputs
 from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.impostors import impostor_model_of
+from service.ml.held_out import compare_on_held_out, split_for_job
 from service.ml.pipeline import embed_vectors
+from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import TrainingConfig, TrainingData, split_shots, train_heads
 
 PROTOCOLS = ("map", "revisit")
@@ -52,7 +57,12 @@ class StartingPoint:
     queries: tuple[np.ndarray, np.ndarray]
     base: HeadsConfig
     before: MethodResult
-    calibrated: bool
+    calibration: Calibration | None = None
+    stored: CalibrationInputs | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calibration is not None
 
     @classmethod
     def of(
@@ -62,9 +72,18 @@ class StartingPoint:
         if calibrated is None:
             local, global_ = result.reference_vectors
             base = HeadsConfig(local.shape[1], global_.shape[1], alpha=result.preset.alpha)
-            return cls(result.reference_vectors, result.query_vectors, base, before, False)
-        base = calibrated.calibration.heads_config()
-        return cls(calibrated.references, calibrated.queries, base, before, True)
+            return cls(result.reference_vectors, result.query_vectors, base, before)
+        if result.stored_references is None:
+            raise RuntimeError("the service pass kept no stored references to refit scores on")
+        calibration = calibrated.calibration
+        return cls(
+            calibrated.references,
+            calibrated.queries,
+            calibration.heads_config(),
+            before,
+            calibration,
+            result.stored_references,
+        )
 
 
 @dataclass
@@ -83,6 +102,13 @@ class RetrainingRow:
     best_epoch: int
     shots_used: int = 0
     calibrated: bool = False
+    gate: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def served(self) -> MethodResult:
+        """What the service would answer with: the new version when the job's not-worse gate
+        passes it, else the one it started from."""
+        return self.after if self.gate.get("not_worse", True) else self.before
 
     def row(self) -> dict[str, Any]:
         return {
@@ -100,6 +126,9 @@ class RetrainingRow:
             "starting_heads": self.best_epoch == 0,
             "calibrated_start": self.calibrated,
             "top1_spread": self.after.details.get("top1_spread"),
+            "gate": self.gate,
+            "served": "retrained" if self.served is self.after else "starting",
+            "served_recall@1": self.served.recall[1],
         }
 
 
@@ -154,17 +183,14 @@ def _rows(ranking: Ranking, keep: np.ndarray) -> Ranking:
     return Ranking(ranking.indices[keep], ranking.scores[keep])
 
 
-def _scored(references: np.ndarray, ranking: Ranking, seed: int) -> tuple[Ranking, str]:
-    """The ranking with calibrated scores from an impostor model refitted on the references'
-    trained embeddings (the job's refit), or with cosines where the map is too small for one."""
-    try:
-        impostors = impostor_model_of(
-            references, [MAP_ROBOT] * len(references), np.arange(len(references)), seed=seed
-        )
-    except ValueError:
-        return ranking, "cosine (too few references for an impostor model)"
+def _scored(heads: LoopNetHeads, start: StartingPoint, ranking: Ranking) -> tuple[Ranking, str]:
+    """The ranking with the calibrated scores of the impostor model the job refits for the
+    trained heads, or with cosines where there is no calibration (nor, in the job, a score)."""
+    if start.calibration is None or start.stored is None:
+        return ranking, "cosine (uncalibrated start: the job keeps no impostor model)"
+    impostors = retrained_impostor_model(heads, start.calibration, start.stored)
     scored = Ranking(ranking.indices, impostors.score(ranking.scores))
-    return scored, "calibrated: -log10 P(impostor cosine >= c), impostors refitted"
+    return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
 
 
 def retraining_rows(
@@ -197,10 +223,12 @@ def retraining_rows(
             for s in ("decode", "local_features", "global_features")
         ]
     )
+    map_data = TrainingData(
+        ref_local, ref_global, ref_submaps, np.arange(n_refs), np.array([MAP_ROBOT] * n_refs)
+    )
     rows: list[RetrainingRow] = []
     for protocol in protocols:
         for k_shots in shots:
-            map_shots, _ = split_shots(ref_submaps, k_shots)
             if protocol == "map":
                 query_shots = np.zeros(0, dtype=np.int64)
             else:
@@ -216,23 +244,29 @@ def retraining_rows(
                 robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
             )
             config = TrainingConfig(**{**(params or {}), "shots": k_shots})
+            # the map's frames split as the job splits an atlas's; revisit shots all train
+            split = split_for_job(map_data, k_shots)
             trained = train_heads(
                 data,
                 base,
                 config,
-                shot_idx=np.concatenate([map_shots, n_refs + np.arange(len(query_shots))]),
+                shot_idx=np.concatenate([split.shots, n_refs + np.arange(len(query_shots))]),
+                validation_idx=split.validation,
             )
             heads = trained.heads
+            gate = compare_on_held_out(
+                LoopNetHeads(base).eval(), heads, data, split.held_out, config.positive_window
+            )
             started = time.perf_counter()
             references = embed_vectors(heads, ref_local, ref_global)
             test_vectors = (query_local[test], query_global[test])
             ranking = rank_by_similarity(embed_vectors(heads, *test_vectors) @ references.T, k)
             per_query = (time.perf_counter() - started) * 1000.0 / max(len(test), 1)
             cosine_top = ranking.scores[:, 0].copy()
-            ranking, score_text = _scored(references, ranking, config.seed)
+            ranking, score_text = _scored(heads, start, ranking)
             subset = _subset(dataset, test)
             right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
-            used = shots_used(ref_submaps, map_shots)
+            used = shots_used(ref_submaps, split.shots)
             name = f"retrained-{protocol}-k{k_shots}"
             shots_text = f"{used}" if used == k_shots else f"{used} (K={k_shots} asked)"
             start_text = "calibrated" if start.calibrated else "uncalibrated"
@@ -273,7 +307,7 @@ def retraining_rows(
                 RetrainingRow(
                     protocol=protocol,
                     shots=k_shots,
-                    train_frames=int(len(map_shots) + len(query_shots)),
+                    train_frames=int(len(split.shots) + len(query_shots)),
                     test_queries=int(len(test)),
                     before=before,
                     after=after,
@@ -285,6 +319,7 @@ def retraining_rows(
                     best_epoch=int(trained.metrics["best_epoch"]),
                     shots_used=used,
                     calibrated=start.calibrated,
+                    gate=gate,
                 )
             )
     return rows

@@ -2,7 +2,8 @@
 kind: a calibration job is in :mod:`service.jobs.calibration`).
 
 Train new heads on the atlas's stored features (through the active version's calibration, when
-it has one), compare them with the active heads on the frames they did not train on, save them
+it has one), compare them with the active heads on whole stretches of the route that no step of
+training saw (:mod:`service.ml.held_out`), save them
 as the next model version, re-embed every frame into a new index file beside the old one, and
 only then, in one transaction, make the version active (when it is not worse, or the settings
 force it) and the job succeeded, logged in the change feed: each API process's follower thread
@@ -29,20 +30,19 @@ from service.index import AtlasIndex
 from service.index.builder import add_stored_frames, load_model_inputs
 from service.jobs.calibration import run_calibration
 from service.ml.active_model import ActiveModel
-from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.impostors import impostor_model_of
-from service.ml.pipeline import embed_vectors
+from service.ml.heads import HeadsConfig
+from service.ml.held_out import compare_on_held_out, split_for_job
+from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import (
     TrainingCancelled,
     TrainingConfig,
     TrainingData,
-    evaluate,
-    split_shots,
     train_heads,
 )
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.feature_store import load_calibration_inputs
 from service.storage.models import Atlas, Job, JobStatus
 
 log = logging.getLogger(__name__)
@@ -145,11 +145,19 @@ class JobRunner:
         data = TrainingData(
             stored.local, stored.global_, stored.submaps, stored.ids, np.asarray(stored.robots)
         )
-        shots, held_out = split_shots(data.submaps, config.shots)
+        split = split_for_job(data, config.shots)
         result = train_heads(
-            data, base, config, progress=on_epoch, should_stop=cancelled, shot_idx=shots
+            data,
+            base,
+            config,
+            progress=on_epoch,
+            should_stop=cancelled,
+            shot_idx=split.shots,
+            validation_idx=split.validation,
         )
-        gate = compare_on_held_out(active_heads, result.heads, data, shots, held_out)
+        gate = compare_on_held_out(
+            active_heads, result.heads, data, split.held_out, config.positive_window
+        )
         activate = gate["not_worse"] or self.settings.retrain_activate_worse
         with self.sessions() as session:
             version = 1 + max(
@@ -160,11 +168,13 @@ class JobRunner:
         result.heads.save(weights)
         version_calibration = None
         if calibration is not None and active_config.calibration is not None:
-            # a trained embedding changes what a cosine means: refit the impostor model on it
-            embeddings = embed_vectors(result.heads, stored.local, stored.global_)
-            calibration.impostors = impostor_model_of(
-                embeddings, stored.robots, stored.ids, seed=config.seed
-            )
+            # a trained embedding changes what a cosine means: refit the impostor model on it,
+            # as the calibration fitted it (unseen frames against seen ones)
+            self._progress(job_id, 76, "refitting the impostor model")
+            with self.sessions() as session:
+                inputs = load_calibration_inputs(session, atlas_id)
+            calibration.impostors = retrained_impostor_model(result.heads, calibration, inputs)
+            del inputs
             path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
             files.append(path)
             calibration.save(path)
@@ -272,33 +282,13 @@ class JobRunner:
         }
 
 
-def compare_on_held_out(
-    active: LoopNetHeads,
-    new: LoopNetHeads,
-    data: TrainingData,
-    shots: np.ndarray,
-    held_out: np.ndarray,
-) -> dict[str, Any]:
-    """Retrieval accuracy of the active and the new heads on the frames the job did not train
-    on (their nearest shot by embedding lies in their submap): the new version is not worse
-    when it is at least as accurate."""
-    if len(held_out) == 0:
-        return {"frames": 0, "active": None, "new": None, "change": None, "not_worse": True}
-    before = evaluate(active, data, shots, held_out)["retrieval_accuracy"]
-    after = evaluate(new, data, shots, held_out)["retrieval_accuracy"]
-    return {
-        "frames": int(len(held_out)),
-        "active": round(before, 4),
-        "new": round(after, 4),
-        "change": round(after - before, 4),
-        "not_worse": after >= before,
-    }
-
-
 def _verdict(gate: dict[str, Any], activated: bool) -> str:
     if gate["change"] is None:
         return "is active (no held-out frames to compare on)"
-    change = f"held-out retrieval accuracy {gate['active']:.3f} -> {gate['new']:.3f}"
+    change = (
+        f"held-out stretches ({gate['frames']} frames) retrieval accuracy "
+        f"{gate['active']:.3f} -> {gate['new']:.3f}"
+    )
     if activated:
         return f"is active ({change})" if gate["not_worse"] else f"is active, forced ({change})"
     return f"was not activated: worse than the active version ({change})"

@@ -36,7 +36,13 @@ from service.ml.aggregation import l2_normalize
 from service.ml.aggregators import Aggregator, aggregator_from_state, fit_aggregator
 from service.ml.features import LocalFeatures
 from service.ml.heads import HeadsConfig
-from service.ml.impostors import MIN_PAIRS, ImpostorModel, impostor_pairs, sequence_positions
+from service.ml.impostors import (
+    MIN_PAIRS,
+    ImpostorModel,
+    impostor_pairs,
+    pair_cosines,
+    sequence_positions,
+)
 from service.ml.whitening import Whitening, WhiteningConfig
 
 FORMAT_VERSION = 1
@@ -145,6 +151,22 @@ class FittedCalibration:
     cpu_s: dict[str, float]  # per stage too: on a shared machine, what a quiet one would take
 
 
+@dataclass
+class ImpostorProbe:
+    """Branch vectors of an atlas's frames and the impostor pairs a score model is fitted on.
+
+    Every pair's ``first`` frame was held out of the whitenings that made these branches and
+    its ``second`` was not, as a query meets stored frames; ``in_sample``: an atlas too small
+    for that, whose pairs are in-sample pairs of the calibrated branches.
+    """
+
+    local_branch: np.ndarray
+    global_branch: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    in_sample: bool
+
+
 class Calibration:
     """Aggregator + branch whitenings + alpha + impostor model of one model version."""
 
@@ -202,8 +224,14 @@ class Calibration:
     ) -> tuple[np.ndarray, np.ndarray]:
         """The calibrated branches ``(D_w, R_w)`` of ``n`` frames, each row unit (or zero)."""
         raw = self.aggregate(descriptors, scores)
-        local = self.local_whitening.transform(raw)
-        local[~raw.any(1)] = 0.0  # no keypoints: no local evidence, as before
+        return self.branches_of_raw(raw, np.asarray(raw.any(1), bool), global_vectors)
+
+    def branches_of_raw(
+        self, local_raw: np.ndarray, has_local: np.ndarray, global_vectors: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The branches ``(D_w, R_w)`` of aggregated local vectors and backbone vectors."""
+        local = self.local_whitening.transform(local_raw)
+        local[~has_local] = 0.0  # no keypoints: no local evidence, as before
         return local, self.global_whitening.transform(global_vectors)
 
     def fuse(
@@ -321,54 +349,54 @@ class Calibration:
         # axes (benchmarks/RESULTS.md, "Calibration cost"). Not the other way round: a probe
         # started from the full fit would inherit the frames it holds out (its impostor spread
         # fell 1.6% on Nordland).
-        held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
-        probe = _fit_branches(
-            config,
-            aggregator,
-            local_raw,
-            has_local,
-            inputs.global_vectors,
-            fit_rows[~held[fit_rows]],
-        )
+        held, probe = _fit_probe(config, aggregator, local_raw, has_local, inputs, fit_rows)
         calibration = _fit_branches(
             config, aggregator, local_raw, has_local, inputs.global_vectors, fit_rows, near=probe
         )
         clock.lap("whitening")
 
-        local_branch = calibration.local_whitening.transform(local_raw)
-        local_branch[~has_local] = 0.0
-        global_branch = calibration.global_whitening.transform(inputs.global_vectors)
+        local_branch, global_branch = calibration.branches_of_raw(
+            local_raw, has_local, inputs.global_vectors
+        )
         clock.lap("transform")
 
-        # Impostor cosines between frames the whitening has not seen and frames it has, as a
-        # query meets stored frames: in-sample pairs look more orthogonal than any query would.
-        # Frames are held out in whole stretches of their robot's sequence, so that no place of
-        # a held-out frame was seen either (a query of a new place, which the score is about).
-        probe_local = probe.local_whitening.transform(local_raw)
-        probe_local[~has_local] = 0.0
-        branches = (probe_local, probe.global_whitening.transform(inputs.global_vectors))
-        first, second = impostor_pairs(
-            inputs.robots,
-            np.asarray(inputs.order),
-            pairs=config.impostor_pairs,
-            seed=config.seed,
-            first_from=held,
+        found = _impostor_probe(
+            probe, (local_branch, global_branch), local_raw, has_local, inputs, held
         )
-        if len(first) < MIN_PAIRS:  # a tiny atlas: in-sample pairs of the fitted branches
-            branches = (local_branch, global_branch)
-            first, second = impostor_pairs(
-                inputs.robots,
-                np.asarray(inputs.order),
-                pairs=config.impostor_pairs,
-                seed=config.seed,
-            )
-        local_cos, global_cos = (_pair_cosines(b, first, second) for b in branches)
+        first, second = found.first, found.second
+        local_cos = pair_cosines(found.local_branch, first, second)
+        global_cos = pair_cosines(found.global_branch, first, second)
         both_local = has_local[first] & has_local[second]
         calibration.spread = (_spread(local_cos[both_local]), _spread(global_cos))
         weights = _cosine_weights(calibration.fusion_alpha)
         calibration.impostors = ImpostorModel.fit(weights[0] * local_cos + weights[1] * global_cos)
         clock.lap("impostors")
         return FittedCalibration(calibration, local_branch, global_branch, clock.wall, clock.cpu)
+
+    def impostor_probe(self, inputs: CalibrationInputs) -> ImpostorProbe:
+        """The probe :meth:`fit` fits its impostor model on, refitted on ``inputs`` by the same
+        code (this calibration's vocabulary and settings), for a model version that keeps this
+        calibration but changes what a cosine means (retrained heads).
+
+        Heads read coordinates, and the probe's axes are not this calibration's (nor as many):
+        each probe branch is rotated onto this calibration's axes by the orthogonal map that best
+        carries the seen frames' probe branches to their calibrated ones (Procrustes), so heads
+        over this calibration's branches read the probe's, and cosines within a branch are kept.
+        """
+        local_raw = self.aggregate(inputs.descriptors, inputs.scores)
+        has_local = np.asarray(local_raw.any(1), bool)
+        seen = self.branches_of_raw(local_raw, has_local, inputs.global_vectors)
+        rng = np.random.default_rng(self.config.seed)
+        rows = rng.permutation(len(inputs))[: self.config.fit_frames]
+        held, probe = _fit_probe(self.config, self.aggregator, local_raw, has_local, inputs, rows)
+        found = _impostor_probe(probe, seen, local_raw, has_local, inputs, held)
+        if found.in_sample:
+            return found
+        return replace(
+            found,
+            local_branch=_rotated_onto(found.local_branch, seen[0], ~held & has_local),
+            global_branch=_rotated_onto(found.global_branch, seen[1], ~held),
+        )
 
     def with_alpha(self, alpha: float) -> Calibration:
         """The same branches at another fusion weight (the impostor model is not refitted)."""
@@ -427,16 +455,6 @@ def _cosine_weights(a: float) -> tuple[float, float]:
     return a * a / total, (1.0 - a) ** 2 / total
 
 
-def _pair_cosines(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    step = 16_384
-    return np.concatenate(
-        [
-            np.einsum("ij,ij->i", vectors[first[i : i + step]], vectors[second[i : i + step]])
-            for i in range(0, len(first), step)
-        ]
-    )
-
-
 def _spread(cosines: np.ndarray) -> float:
     """Standard deviation of impostor cosines (floored: a constant branch must not divide by 0)."""
     return max(float(np.std(cosines)) if len(cosines) else 0.0, 1e-4)
@@ -463,6 +481,55 @@ def held_out_stretches(robots: Sequence[str], order: np.ndarray, share: float) -
     if not held.any() or held.all():  # too short a sequence for stretches: single frames
         held = np.arange(len(rank)) % period == 0
     return np.asarray(held, bool)
+
+
+def _fit_probe(
+    config: CalibrationConfig,
+    aggregator: Aggregator,
+    local_raw: np.ndarray,
+    has_local: np.ndarray,
+    inputs: CalibrationInputs,
+    rows: np.ndarray,
+) -> tuple[np.ndarray, Calibration]:
+    """The frames held out in stretches (a mask) and both whitenings fitted on ``rows``
+    without them: the impostor probe."""
+    held = held_out_stretches(inputs.robots, np.asarray(inputs.order), config.impostor_holdout)
+    rest = rows[~held[rows]]
+    probe = _fit_branches(config, aggregator, local_raw, has_local, inputs.global_vectors, rest)
+    return held, probe
+
+
+def _impostor_probe(
+    probe: Calibration,
+    seen: tuple[np.ndarray, np.ndarray],
+    local_raw: np.ndarray,
+    has_local: np.ndarray,
+    inputs: CalibrationInputs,
+    held: np.ndarray,
+) -> ImpostorProbe:
+    """Impostor pairs between frames ``held`` out of ``probe``'s whitenings and frames it saw,
+    with every frame's probe branches: in-sample pairs look more orthogonal than any query's.
+    Frames are held out in whole stretches of their robot's sequence, so that no place of a
+    held-out frame was seen either (a query of a new place, which the score is about). Too few
+    such pairs (a tiny atlas): in-sample pairs of the ``seen`` (calibrated) branches."""
+    config, order = probe.config, np.asarray(inputs.order)
+    first, second = impostor_pairs(
+        inputs.robots, order, pairs=config.impostor_pairs, seed=config.seed, first_from=held
+    )
+    if len(first) >= MIN_PAIRS:
+        local, global_ = probe.branches_of_raw(local_raw, has_local, inputs.global_vectors)
+        return ImpostorProbe(local, global_, first, second, in_sample=False)
+    first, second = impostor_pairs(
+        inputs.robots, order, pairs=config.impostor_pairs, seed=config.seed
+    )
+    return ImpostorProbe(*seen, first, second, in_sample=True)
+
+
+def _rotated_onto(source: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``source`` rows mapped into ``target``'s coordinates by the orthogonal map that best
+    carries ``source[rows]`` to ``target[rows]`` (orthogonal Procrustes), unit again."""
+    u, _, vt = np.linalg.svd(target[rows].T @ source[rows], full_matrices=False)
+    return l2_normalize(source @ (u @ vt).T)
 
 
 def _fit_branches(

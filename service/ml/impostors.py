@@ -209,25 +209,15 @@ def _normal_excess(values: np.ndarray, start: float) -> float:
     return spread * normal.pdf(z) / survival - (start - median)
 
 
-def impostor_model_of(
-    embeddings: np.ndarray,
-    robots: Sequence[str],
-    order: np.ndarray,
-    *,
-    pairs: int = 100_000,
-    seed: int = 0,
-) -> ImpostorModel:
-    """The impostor model of unit ``embeddings`` (pairs far apart in their robot's sequence):
-    refitted when trained heads change what a cosine means."""
-    first, second = impostor_pairs(robots, np.asarray(order), pairs=pairs, seed=seed)
+def pair_cosines(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Cosines of the unit ``vectors``' row pairs ``(first[i], second[i])``, in blocks."""
     step = 16_384
-    cosines = np.concatenate(
+    return np.concatenate(
         [
-            np.einsum("ij,ij->i", embeddings[first[i : i + step]], embeddings[second[i : i + step]])
+            np.einsum("ij,ij->i", vectors[first[i : i + step]], vectors[second[i : i + step]])
             for i in range(0, len(first), step)
         ]
     )
-    return ImpostorModel.fit(cosines)
 
 
 def loop_score_threshold(score_min: float, frames: int) -> float:

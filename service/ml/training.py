@@ -93,6 +93,13 @@ class TrainingConfig:
     frame_temperature: float = Field(
         default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
     )
+    keep_weight: float = Field(
+        default=0.0,
+        ge=0,
+        le=100,
+        description="Weight of the term that keeps the trained cosines of the shots' "
+        "non-positive pairs near the starting heads' (against forgetting); 0: off.",
+    )
     positive_window: int = Field(
         default=2,
         ge=0,
@@ -284,6 +291,15 @@ def _losses(
     return classification, contrastive
 
 
+def keep_loss(embeddings: torch.Tensor, start: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """Mean squared change of the cosines of ``pairs`` (a boolean ``n x n`` mask) from the
+    ``start`` cosines: a distillation of the starting heads on the pairs training does not pull
+    together, so pushing some places apart cannot reshape the rest of the space freely."""
+    if not pairs.any():
+        return embeddings.new_zeros(())
+    return (embeddings @ embeddings.T - start)[pairs].pow(2).mean()
+
+
 VALIDATION_LOSS_SAMPLE = 1024  # validation frames in the (quadratic) contrastive term
 
 
@@ -339,6 +355,7 @@ def train_heads(
     progress: ProgressCallback | None = None,
     should_stop: Callable[[], bool] | None = None,
     shot_idx: np.ndarray | None = None,
+    validation_idx: np.ndarray | None = None,
 ) -> TrainingResult:
     """Train new heads for an atlas from its stored vectors.
 
@@ -349,7 +366,9 @@ def train_heads(
             is a rotation of the centred active embedding and loses nothing: a calibrated
             atlas's branches are centred, and epoch 0 ranks as the active version does).
         shot_idx: the training frames (indices into ``data``); None: ``config.shots`` per
-            submap by :func:`split_shots`. The other frames validate.
+            submap by :func:`split_shots`.
+        validation_idx: the frames that pick the best epoch; None: every frame not a shot
+            (the job keeps its held-out stretches out of both, see :mod:`service.ml.held_out`).
         progress: called with (fraction 0..1, message) once per epoch.
         should_stop: polled once per epoch; True raises :class:`TrainingCancelled`.
     """
@@ -374,12 +393,18 @@ def train_heads(
     else:
         train_idx = np.unique(np.asarray(shot_idx, dtype=np.int64))
         val_idx = np.setdiff1d(np.arange(len(data.submaps)), train_idx)
+    if validation_idx is not None:
+        val_idx = np.setdiff1d(np.asarray(validation_idx, dtype=np.int64), train_idx)
     label_index = {label: i for i, label in enumerate(labels)}
     targets = torch.tensor([label_index[int(s)] for s in data.submaps], dtype=torch.long)
     local = torch.from_numpy(data.local)
     global_ = torch.from_numpy(data.global_)
     pairs = contrastive_pairs(data, train_idx, config.positive_window)
-    _init_prototypes(heads, local[train_idx], global_[train_idx], targets[train_idx], len(labels))
+    # a submap without shots (inside a held-out stretch) starts from its frames' mean, so the
+    # classifier can still name it; no gradient ever comes from those frames
+    unshot = np.flatnonzero(~np.isin(data.submaps, data.submaps[train_idx]))
+    start_idx = np.concatenate([train_idx, unshot])
+    _init_prototypes(heads, local[start_idx], global_[start_idx], targets[start_idx], len(labels))
     before = evaluate(heads, data, train_idx, val_idx)
 
     parts = {
@@ -401,6 +426,10 @@ def train_heads(
         loss = metrics.pop("loss")
         return float(np.mean(list(metrics.values()))), -loss
 
+    with torch.no_grad():  # the starting heads' cosines of the shots' non-positive pairs
+        start_embeddings = heads.embed(local[train_idx], global_[train_idx])
+        start_cosines = start_embeddings @ start_embeddings.T
+        kept_pairs = ~pairs[0] & ~torch.eye(len(train_idx), dtype=torch.bool)
     history: list[dict[str, float]] = []
     best_state = copy.deepcopy(heads.state_dict())
     best_score = validation_score() if len(val_idx) else (0.0, 0.0)
@@ -420,6 +449,9 @@ def train_heads(
         )
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
+        if config.keep_weight > 0:  # on the shots as stored: augmented cosines are lower
+            current = heads.embed(local[train_idx], global_[train_idx])
+            loss = loss + config.keep_weight * keep_loss(current, start_cosines, kept_pairs)
         if config.frame_weight > 0 and len(train_idx) > 1:
             first, second = (
                 heads.embed(

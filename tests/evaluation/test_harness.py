@@ -116,7 +116,9 @@ def test_retrained_rows_train_on_shots_and_test_on_the_other_queries(slice_run) 
         revisit_shots = 0 if protocol == "map" else queries - row.test_queries
         # map protocol: every query is a test query; revisit: K per submap are training shots
         assert revisit_shots == (0 if protocol == "map" else shots * submaps)
-        assert row.train_frames == shots * submaps + revisit_shots
+        # map shots come from the submaps outside the job's held-out stretch (one of them)
+        assert row.train_frames == shots * (submaps - 1) + revisit_shots
+        assert row.gate["frames"] == config.submap_size and row.served in (row.before, row.after)
         assert row.after.query_ms["n"] == row.test_queries == len(row.after.ranking.indices)
         assert row.epochs_run >= 1 and 0 <= row.best_epoch <= row.epochs_run
         assert 0.0 <= row.classifier_submap_accuracy <= 1.0

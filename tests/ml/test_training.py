@@ -242,3 +242,28 @@ def test_evaluate_without_validation_frames_is_empty() -> None:
     heads = train_heads(data, BASE, TrainingConfig(shots=2, epochs=3, embed_dim=16)).heads
     assert evaluate(heads, data, np.arange(len(data.submaps)), np.array([], dtype=np.int64)) == {}
     assert F.normalize(torch.ones(2), dim=0).norm() == pytest.approx(1.0)
+
+
+def test_the_keep_term_holds_the_shots_other_cosines_near_the_start() -> None:
+    data = trajectory()
+    shots, _ = split_shots(data.submaps, 9)
+    window = TrainingConfig().positive_window
+    others = ~contrastive_pairs(data, shots, window)[0] & ~torch.eye(len(shots), dtype=torch.bool)
+    local, global_ = torch.from_numpy(data.local[shots]), torch.from_numpy(data.global_[shots])
+    start = LoopNetHeads(HeadsConfig(16, 24, BASE.alpha, embed_dim=16))
+    pca_init(start, data.local, data.global_)
+
+    def drift(keep_weight: float) -> float:
+        """Mean absolute change of the shots' non-positive cosines over training."""
+        config = TrainingConfig(
+            shots=9, epochs=60, embed_dim=16, patience=1000, keep_weight=keep_weight
+        )
+        heads = train_heads(data, BASE, config).heads
+        with torch.no_grad():
+            before, after = start.embed(local, global_), heads.embed(local, global_)
+        return float((after @ after.T - before @ before.T)[others].abs().mean())
+
+    free, kept = drift(0.0), drift(10.0)
+    assert kept < 0.5 * free, (kept, free)
+    with pytest.raises(ValueError, match="keep_weight"):
+        TrainingConfig(keep_weight=-1.0)

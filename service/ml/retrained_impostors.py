@@ -1,0 +1,26 @@
+"""The impostor model of a retrained model version: what its calibrated score means.
+
+Trained heads change what a cosine means, so a retrained version refits the impostor model of
+the calibration it keeps, the way the calibration fitted it (:meth:`Calibration.fit`): pairs
+of frames held out of a probe whitening with frames it saw, as a query meets stored frames,
+both embedded by the new heads. In-sample pairs of the atlas's own frames look more orthogonal
+than any query's: a wrong match scored 12.3 after map-only retraining on cohog200, 2.95 before
+(benchmarks/RESULTS.md, "Retraining that does not forget").
+"""
+
+from __future__ import annotations
+
+from service.ml.calibration import Calibration, CalibrationInputs
+from service.ml.heads import LoopNetHeads
+from service.ml.impostors import ImpostorModel, pair_cosines
+from service.ml.pipeline import embed_vectors
+
+
+def retrained_impostor_model(
+    heads: LoopNetHeads, calibration: Calibration, inputs: CalibrationInputs
+) -> ImpostorModel:
+    """The impostor model of ``heads`` over ``calibration``'s branches, fitted on the atlas's
+    stored features ``inputs`` through the calibration's impostor probe."""
+    probe = calibration.impostor_probe(inputs)
+    embeddings = embed_vectors(heads, probe.local_branch, probe.global_branch)
+    return ImpostorModel.fit(pair_cosines(embeddings, probe.first, probe.second))

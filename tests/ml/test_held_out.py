@@ -1,0 +1,82 @@
+"""What a retraining job holds out (whole stretches of the route) and its not-worse gate."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from service.jobs.retraining import _verdict
+from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.held_out import compare_on_held_out, split_for_job
+from service.ml.training import TrainingConfig, TrainingData, train_heads
+
+FRAMES, SUBMAP = 100, 5  # one robot's route of 20 submaps; stretches of 5 frames held out
+HELD = [f for start in (10, 35, 60, 85) for f in range(start, start + 5)]
+
+
+def route(seed: int = 0) -> TrainingData:
+    """Each submap's frames lie near its own axis (orthogonal places), 64 + 64 dims."""
+    rng = np.random.default_rng(seed)
+    submaps = np.arange(FRAMES) // SUBMAP
+    centres = np.eye(128)[rng.permutation(128)[: FRAMES // SUBMAP]]
+    vectors = centres[submaps] + 0.02 * rng.normal(size=(FRAMES, 128))
+    vectors = vectors.astype(np.float32)
+    return TrainingData(vectors[:, :64], vectors[:, 64:], submaps, np.arange(FRAMES))
+
+
+def test_a_job_keeps_whole_stretches_out_of_training_and_validation() -> None:
+    data = route()
+    split = split_for_job(data, 3)
+    assert split.held_out.tolist() == HELD  # a fifth of the route, in stretches of 5 frames
+    assert not np.isin(split.shots, split.held_out).any()
+    assert not np.isin(split.validation, split.held_out).any()
+    everything = np.concatenate([split.shots, split.validation, split.held_out])
+    assert sorted(everything.tolist()) == list(range(FRAMES))
+    # every submap outside the stretches gives 3 shots (one frame left to validate)
+    seen = np.setdiff1d(np.arange(FRAMES // SUBMAP), data.submaps[HELD])
+    assert np.bincount(data.submaps[split.shots])[seen].tolist() == [3] * len(seen)
+
+
+def test_the_gate_refuses_heads_that_forget_the_places_they_did_not_train_on() -> None:
+    data = route()
+    split = split_for_job(data, 3)
+    config = HeadsConfig(local_dim=64, global_dim=64, alpha=0.5)
+    active = LoopNetHeads(config).eval()  # D and R side by side: every place its own axis
+    forgetful = LoopNetHeads(config).eval()
+    with torch.no_grad():  # keeps the trained places' axes only: held-out frames are noise
+        keep = np.zeros(128, np.float32)
+        trained = np.flatnonzero(~np.isin(np.arange(FRAMES), HELD))
+        keep[np.abs(np.hstack([data.local, data.global_])[trained]).argmax(axis=1)] = 1.0
+        forgetful.fusion.project_local.weight.mul_(torch.from_numpy(keep[:, None]))
+        forgetful.fusion.project_global.weight.mul_(torch.from_numpy(keep[:, None]))
+    gate = compare_on_held_out(active, forgetful, data, split.held_out, window=2)
+    assert gate["frames"] == len(HELD)
+    assert gate["active"] == 1.0 and gate["new"] < 0.5 and gate["not_worse"] is False
+    assert _verdict(gate, activated=False).startswith("was not activated: worse")
+    assert _verdict(gate, activated=True).startswith("is active, forced")
+
+    same = compare_on_held_out(active, LoopNetHeads(config).eval(), data, split.held_out, 2)
+    assert same["not_worse"] is True and same["change"] == 0
+    assert _verdict(same, activated=True) == (
+        "is active (held-out stretches (20 frames) retrieval accuracy 1.000 -> 1.000)"
+    )
+
+
+def test_submaps_inside_a_held_out_stretch_stay_nameable() -> None:
+    # no shot comes from them, but the classifier starts from their frames' mean
+    data = route()
+    split = split_for_job(data, 3)
+    trained = train_heads(
+        data,
+        HeadsConfig(local_dim=64, global_dim=64, alpha=0.5),
+        TrainingConfig(shots=3, epochs=10),
+        shot_idx=split.shots,
+        validation_idx=split.validation,
+    )
+    assert trained.metrics["validation_frames"] == len(split.validation)
+    with torch.no_grad():
+        logits = trained.heads.classify(
+            torch.from_numpy(data.local[HELD]), torch.from_numpy(data.global_[HELD])
+        )
+    named = np.asarray(trained.heads.class_labels)[logits.argmax(dim=1).numpy()]
+    assert np.mean(named == data.submaps[HELD]) >= 0.9

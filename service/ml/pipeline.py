@@ -93,7 +93,9 @@ class FeaturePipeline:
         try:
             if side_by_side:
                 assert self._branch_pool is not None
-                described = self._branch_pool.submit(self._describe_timed, rgbs)
+                described = self._branch_pool.submit(
+                    self._describe_in_branch_thread, rgbs, torch.get_num_threads()
+                )
                 local, local_ms = self._extract_timed(rgbs)
                 global_vectors, global_ms = described.result()
             else:
@@ -117,6 +119,15 @@ class FeaturePipeline:
     def _extract_timed(self, rgbs: list[np.ndarray]) -> tuple[list[LocalFeatures], float]:
         start = time.perf_counter()
         return self.local.extract_batch(rgbs), _ms_since(start)
+
+    def _describe_in_branch_thread(
+        self, rgbs: list[np.ndarray], threads: int
+    ) -> tuple[np.ndarray, float]:
+        """The backbone in the side-by-side thread, with the caller's intra-op threads: a new
+        thread's OpenMP team otherwise takes every core (oneDNN reads the thread's own count),
+        oversubscribing them and rounding differently from the caller's thread."""
+        torch.set_num_threads(threads)
+        return self._describe_timed(rgbs)
 
     def _describe_timed(self, rgbs: list[np.ndarray]) -> tuple[np.ndarray, float]:
         start = time.perf_counter()

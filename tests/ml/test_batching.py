@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+import torch
 
 from service.ml.batching import MicroBatcher
 from service.ml.pipeline import FeaturePipeline
@@ -153,17 +154,22 @@ def test_branches_side_by_side_give_the_same_features() -> None:
         return describe(rgbs)
 
     side_by_side._describe_timed = recording  # type: ignore[method-assign]
-    want = [one_after.extract(rgb) for rgb in frames]
-    got = [side_by_side.extract(rgb) for rgb in frames]  # one at a time: side by side
-    assert all(name.startswith("loopnet-global-branch") for name in threads)
-    with ThreadPoolExecutor(4) as pool:  # concurrent frames: one after the other, mostly
-        got += list(pool.map(side_by_side.extract, frames))
-    for i, features in enumerate(got):
-        reference = want[i % 4]
-        assert np.array_equal(features.global_vector, reference.global_vector)
-        assert np.array_equal(features.local.keypoints, reference.local.keypoints)
-        assert np.array_equal(features.local.descriptors, reference.local.descriptors)
-        assert set(features.timings_ms) == {"local_features", "global_features"}
+    intra_op = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the service runs (a new thread's own team would take 2)
+    try:
+        want = [one_after.extract(rgb) for rgb in frames]
+        got = [side_by_side.extract(rgb) for rgb in frames]  # one at a time: side by side
+        assert all(name.startswith("loopnet-global-branch") for name in threads)
+        with ThreadPoolExecutor(4) as pool:  # concurrent frames: one after the other, mostly
+            got += list(pool.map(side_by_side.extract, frames))
+        for i, features in enumerate(got):
+            reference = want[i % 4]
+            assert np.array_equal(features.global_vector, reference.global_vector)
+            assert np.array_equal(features.local.keypoints, reference.local.keypoints)
+            assert np.array_equal(features.local.descriptors, reference.local.descriptors)
+            assert set(features.timings_ms) == {"local_features", "global_features"}
+    finally:
+        torch.set_num_threads(intra_op)
 
 
 def test_parallel_branches_auto_needs_a_core_per_branch(monkeypatch: pytest.MonkeyPatch) -> None:

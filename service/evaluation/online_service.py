@@ -16,6 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from service.atlas.ingest import FrameFields
@@ -61,6 +62,7 @@ def service_observations(
             exclude_recent_frames=exclude_recent,
             exclude_recent_seconds=0.0,
             consistency_frames=consistency,
+            torch_threads=torch.get_num_threads(),  # the caller's own, kept
         )
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from service.atlas.catalog import AtlasService
@@ -305,7 +306,11 @@ def run_service_pass(
     with tempfile.TemporaryDirectory(prefix="loopnet-eval-") as data_dir:
         # Retrieval only: geometric verification has its own pass (verification_pass.py).
         settings = Settings(
-            data_dir=Path(data_dir), max_k=max(k, 1), verify_top=0, calibration_milestones=""
+            data_dir=Path(data_dir),
+            max_k=max(k, 1),
+            verify_top=0,
+            calibration_milestones="",
+            torch_threads=torch.get_num_threads(),  # the harness's own (--threads), kept
         )
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)

@@ -426,10 +426,14 @@ def train_heads(
         loss = metrics.pop("loss")
         return float(np.mean(list(metrics.values()))), -loss
 
-    with torch.no_grad():  # the starting heads' cosines of the shots' non-positive pairs
-        start_embeddings = heads.embed(local[train_idx], global_[train_idx])
-        start_cosines = start_embeddings @ start_embeddings.T
-        kept_pairs = ~pairs[0] & ~torch.eye(len(train_idx), dtype=torch.bool)
+    keep: tuple[torch.Tensor, torch.Tensor] | None = None
+    if config.keep_weight > 0:  # the starting heads' cosines of the shots' non-positive pairs
+        with torch.no_grad():
+            start_embeddings = heads.embed(local[train_idx], global_[train_idx])
+            keep = (
+                start_embeddings @ start_embeddings.T,
+                ~pairs[0] & ~torch.eye(len(train_idx), dtype=torch.bool),
+            )
     history: list[dict[str, float]] = []
     best_state = copy.deepcopy(heads.state_dict())
     best_score = validation_score() if len(val_idx) else (0.0, 0.0)
@@ -449,9 +453,9 @@ def train_heads(
         )
         loss = config.classification_weight * classification
         loss = loss + config.contrastive_weight * contrastive
-        if config.keep_weight > 0:  # on the shots as stored: augmented cosines are lower
+        if keep is not None:  # on the shots as stored: augmented cosines are lower
             current = heads.embed(local[train_idx], global_[train_idx])
-            loss = loss + config.keep_weight * keep_loss(current, start_cosines, kept_pairs)
+            loss = loss + config.keep_weight * keep_loss(current, *keep)
         if config.frame_weight > 0 and len(train_idx) > 1:
             first, second = (
                 heads.embed(

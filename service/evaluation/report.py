@@ -49,7 +49,7 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = [
         "| protocol | K | train frames | test queries | R@1 | R@5 | submap acc (nearest frame) "
         "| submap acc (classifier) | AUC-PR | R@100%P | top-1 cosine right / wrong (median) "
-        "| train s | epochs (best) | gate: held-out acc | served R@1 |",
+        "| train s | epochs (best) | gate: held-out acc, mAP | served R@1 |",
         "|" + " --- |" * 15,
     ]
 
@@ -76,7 +76,10 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         if found.get("change") is None:
             return "-"
         verdict = "passes" if found["not_worse"] else "refuses"
-        return f"{_fmt(found['active'])} → {_fmt(found['new'])} ({found['frames']}): {verdict}"
+        accuracy = f"{_fmt(found['active'])} → {_fmt(found['new'])}"
+        if "map_active" in found:
+            accuracy += f", mAP {_fmt(found['map_active'])} → {_fmt(found['map_new'])}"
+        return f"{accuracy} ({found['frames']}): {verdict}"
 
     def served(row: dict[str, Any]) -> str:
         if "served_recall@1" not in row:
@@ -104,8 +107,8 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         "those query frames are not test queries. Rankings are over reference frames only. "
         "Submap accuracy (classifier): the classification head's submap holds a right "
         "reference. Training uses the retraining job's default parameters. Gate: the job's "
-        "not-worse check, the starting and the new heads' accuracy on held-out stretches of the "
-        "map (frames); served R@1: the new version's when the gate passes it, else the "
+        "not-worse check, the starting and the new heads' nearest-frame accuracy and mean average "
+        "precision on held-out stretches of the map (frames); served R@1: the new version's when the gate passes it, else the "
         "starting row's.",
     ]
     return "\n".join(lines)

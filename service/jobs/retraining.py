@@ -287,7 +287,8 @@ def _verdict(gate: dict[str, Any], activated: bool) -> str:
         return "is active (no held-out frames to compare on)"
     change = (
         f"held-out stretches ({gate['frames']} frames) retrieval accuracy "
-        f"{gate['active']:.3f} -> {gate['new']:.3f}"
+        f"{gate['active']:.3f} -> {gate['new']:.3f}, mean average precision "
+        f"{gate['map_active']:.3f} -> {gate['map_new']:.3f}"
     )
     if activated:
         return f"is active ({change})" if gate["not_worse"] else f"is active, forced ({change})"

@@ -25,7 +25,9 @@ def exported(
     """A SQLite deployment's atlas (two robots, a trained version, one inter-robot closure),
     its answers, its loop closures, and its snapshot file."""
     tmp_path = tmp_path_factory.mktemp("snapshot-source")
-    settings = make_settings(tmp_path / "source")
+    # the snapshot must carry a trained active version, whatever the not-worse gate says of
+    # 20 epochs on 8 frames
+    settings = make_settings(tmp_path / "source", retrain_activate_worse=True)
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         create_atlas(client, submaps=("s0", "s1"))

@@ -142,7 +142,9 @@ def run_retraining_scenario(client: TestClient, env: dict[str, str]) -> None:
     again = client.post("/v1/atlases/campus/jobs", json=QUICK_JOB)
     assert again.status_code == 409 and "already queued" in again.json()["detail"]
 
-    worker = start_worker(env)
+    # the flow of an activated version is what this scenario is about; on 16 frames the gate
+    # may refuse it either way (test_held_out.py tests the gate), so the worker forces it
+    worker = start_worker({**env, "LOOPNET_RETRAIN_ACTIVATE_WORSE": "1"})
     try:
         job, progress = wait_for_job(client, submitted.json()["id"], worker)
     finally:
@@ -152,6 +154,8 @@ def run_retraining_scenario(client: TestClient, env: dict[str, str]) -> None:
     # one stretch of 5 of the 16 frames stays out of training (the gate judges on it); the
     # shots come from the rest, so the loss starts near 0 on 6 shots and is not compared
     assert job["metrics"]["held_out"]["frames"] == 5 and job["metrics"]["shots"] == 6
+    assert job["metrics"]["activated"] is True
+    assert ("forced" in job["message"]) != job["metrics"]["held_out"]["not_worse"]
     assert progress == sorted(progress)
     assert client.get(f"/v1/atlases/campus/jobs/{cancelled['id']}").json()["status"] == "cancelled"
 

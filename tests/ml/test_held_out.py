@@ -7,7 +7,7 @@ import torch
 
 from service.jobs.retraining import _verdict
 from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.held_out import compare_on_held_out, split_for_job
+from service.ml.held_out import _average_precision, compare_on_held_out, split_for_job
 from service.ml.training import TrainingConfig, TrainingData, train_heads
 
 FRAMES, SUBMAP = 100, 5  # one robot's route of 20 submaps; stretches of 5 frames held out
@@ -58,8 +58,37 @@ def test_the_gate_refuses_heads_that_forget_the_places_they_did_not_train_on() -
     same = compare_on_held_out(active, LoopNetHeads(config).eval(), data, split.held_out, 2)
     assert same["not_worse"] is True and same["change"] == 0
     assert _verdict(same, activated=True) == (
-        "is active (held-out stretches (20 frames) retrieval accuracy 1.000 -> 1.000)"
+        "is active (held-out stretches (20 frames) retrieval accuracy 1.000 -> 1.000, "
+        f"mean average precision {same['map_active']:.3f} -> {same['map_new']:.3f})"
     )
+
+
+def test_average_precision_of_one_ranking_by_hand() -> None:
+    itself = -np.inf
+    similarity = np.array([itself, 0.9, 0.8, 0.7, 0.6])
+    # right frames ranked 1st and 4th: (1/1 + 2/4) / 2
+    assert _average_precision(similarity, np.array([0, 1, 0, 0, 1], bool)) == 0.75
+    # a tie counts against the right frame: ranked 2nd
+    assert _average_precision(np.array([itself, 0.5, 0.5]), np.array([0, 1, 0], bool)) == 0.5
+    assert _average_precision(similarity, np.zeros(5, bool)) == 0.0
+
+
+def test_the_gate_sees_a_worse_neighbourhood_when_the_nearest_frame_stays_right() -> None:
+    # nearest-frame accuracy saturates at 1.0 on a single route; the ranking of the rest of
+    # a held-out frame's neighbourhood still shows the damage
+    data = route()
+    split = split_for_job(data, 3)
+    config = HeadsConfig(local_dim=64, global_dim=64, alpha=0.5)
+    noisy = LoopNetHeads(config).eval()  # the dims no place lies on weigh 8 times more
+    places = np.unique(np.abs(np.hstack([data.local, data.global_])).argmax(axis=1))
+    scale = np.full(128, 8.0, np.float32)
+    scale[places] = 1.0
+    with torch.no_grad():
+        noisy.fusion.project_local.weight.mul_(torch.from_numpy(scale[None, :64]))
+        noisy.fusion.project_global.weight.mul_(torch.from_numpy(scale[None, 64:]))
+    gate = compare_on_held_out(LoopNetHeads(config).eval(), noisy, data, split.held_out, 2)
+    assert gate["active"] == gate["new"] == 1.0
+    assert gate["map_new"] < gate["map_active"] and gate["not_worse"] is False
 
 
 def test_submaps_inside_a_held_out_stretch_stay_nameable() -> None:

@@ -36,7 +36,8 @@ class ModelPolicy:
     Attributes:
         bf16: run in bf16 when the resolved precision is bf16 (False: always fp32).
         channels_last: NHWC input and weights (oneDNN's native layout; measured faster for all
-            of our CNNs even in fp32).
+            of our CNNs in bf16, and for the backbones in fp32).
+        channels_last_fp32: keep NHWC when the model runs in fp32 (False: NCHW then).
         fold_batchnorm: fold eval-mode BatchNorm into the preceding convolution (torch.fx).
         float_outputs: hand back contiguous float32 outputs (False: the network's own dtype
             and layout, for a caller that converts only what it reads).
@@ -44,6 +45,7 @@ class ModelPolicy:
 
     bf16: bool = True
     channels_last: bool = True
+    channels_last_fp32: bool = True
     fold_batchnorm: bool = False
     float_outputs: bool = True
 
@@ -52,7 +54,9 @@ class ModelPolicy:
 # faster, and MobileNetV2's bf16 vectors moved a harness's R@1 beyond the guard. ResNet-18 is
 # unmeasured (no weights on the development machine): fp32.
 MODEL_POLICIES: dict[str, ModelPolicy] = {
-    "disk": ModelPolicy(float_outputs=False),
+    # fp32 DISK in NCHW: its fp32 InstanceNorms copy a channels-last input to NCHW and back,
+    # 0.80x of kornia's speed at 512 px on an AVX2 EPYC (NCHW: 1.04x; RESULTS.md, stop 22)
+    "disk": ModelPolicy(float_outputs=False, channels_last_fp32=False),
     "xfeat": ModelPolicy(bf16=False, channels_last=False),
     "mobilenetv2": ModelPolicy(bf16=False, fold_batchnorm=True),
     "resnet18": ModelPolicy(bf16=False, fold_batchnorm=True),
@@ -63,15 +67,20 @@ def _onednn_available() -> bool:
     return bool(torch.backends.mkldnn.is_available())  # type: ignore[no-untyped-call]
 
 
-@functools.cache
-def cpu_has_native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """True when oneDNN is built in and the CPU computes bf16 natively (AVX512-BF16 or AMX)."""
+def _onednn_bf16_supported() -> bool:
+    """oneDNN is built in and runs bf16 on this CPU at all (natively or emulated on AVX-512)."""
     if not _onednn_available():
         return False
     try:
-        if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
-            return False
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
+        return False
+
+
+@functools.cache
+def cpu_has_native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """True when oneDNN is built in and the CPU computes bf16 natively (AVX512-BF16 or AMX)."""
+    if not _onednn_bf16_supported():
         return False
     try:
         flags = set(cpuinfo.read_text().split())
@@ -90,9 +99,7 @@ def resolve_precision(requested: str) -> Precision:
         raise ValueError(f"unknown precision {requested!r}; choose one of {PRECISION_CHOICES}")
     if requested == "auto":
         return "bf16" if cpu_has_native_bf16() else "fp32"
-    if requested == "bf16" and not (
-        _onednn_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    ):
+    if requested == "bf16" and not _onednn_bf16_supported():
         raise ValueError("precision 'bf16' was forced, but this CPU/torch has no oneDNN bf16")
     return "bf16" if requested == "bf16" else "fp32"
 
@@ -235,9 +242,10 @@ def optimise(module: nn.Module, model_name: str, precision: Precision) -> nn.Mod
     module = module.eval()
     if policy.fold_batchnorm:
         module = fold_batchnorm(module)
-    if policy.channels_last:
-        module = module.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     effective: Precision = precision if policy.bf16 else "fp32"
+    channels_last = policy.channels_last and (effective == "bf16" or policy.channels_last_fp32)
+    if channels_last:
+        module = module.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     if effective == "bf16":
         module = to_bf16(module)
-    return FastInference(module, effective, policy.channels_last, policy.float_outputs).eval()
+    return FastInference(module, effective, channels_last, policy.float_outputs).eval()

@@ -16,6 +16,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from service.ml import precision
 from service.ml.backbones import BackboneConfig, build_backbone
 from service.ml.backbones.registry import backbone_spec, pretrained_trunk
 from service.ml.images import decode_image, resize_long_side, to_tensor
@@ -26,6 +27,7 @@ from service.ml.precision import (
     FastInference,
     cpu_has_native_bf16,
     fold_batchnorm,
+    optimise,
     resolve_precision,
 )
 from service.ml.presets import resolve_preset
@@ -58,12 +60,25 @@ def test_resolve_precision() -> None:
         resolve_precision("fp16")
 
 
-def test_a_cpu_without_bf16_flags_falls_back_to_fp32(tmp_path: Path) -> None:
+def test_a_cpu_without_bf16_flags_falls_back_to_fp32(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    detect = cpu_has_native_bf16.__wrapped__  # type: ignore[attr-defined]
     cpuinfo = tmp_path / "cpuinfo"
+    # a oneDNN that runs bf16 (as on any AVX-512 CPU, natively or not): the flags decide
+    monkeypatch.setattr(precision, "_onednn_bf16_supported", lambda: True)
     cpuinfo.write_text("flags\t\t: fpu sse sse2 avx2 avx512f\n")
-    assert not cpu_has_native_bf16.__wrapped__(cpuinfo)
+    assert not detect(cpuinfo)
     cpuinfo.write_text("flags\t\t: fpu sse avx512f avx512_bf16\n")
-    assert cpu_has_native_bf16.__wrapped__(cpuinfo) == torch.backends.mkldnn.is_available()
+    assert detect(cpuinfo)
+    cpuinfo.write_text("flags\t\t: fpu sse avx512f amx_bf16\n")
+    assert detect(cpuinfo)
+    # an AVX2-only CPU: oneDNN has no bf16 whatever the flags say
+    monkeypatch.setattr(precision, "_onednn_bf16_supported", lambda: False)
+    cpuinfo.write_text("flags\t\t: fpu sse avx512f avx512_bf16\n")
+    assert not detect(cpuinfo)
+    with pytest.raises(ValueError, match="no oneDNN bf16"):
+        resolve_precision("bf16")
 
 
 def test_bf16_instance_norm_rounds_the_float32_result_once() -> None:
@@ -98,6 +113,19 @@ def test_disk_detect_equals_kornia_forward() -> None:
     assert torch.equal(got.keypoints, want.keypoints)
     assert torch.equal(got.scores, want.detection_scores)
     assert torch.allclose(got.descriptors, want.descriptors, atol=1e-6)
+
+
+def test_disk_is_channels_last_in_bf16_only() -> None:
+    # fp32 InstanceNorms copy a channels-last input to NCHW and back (0.80x of kornia at 512 px)
+    def layout(precision: str) -> bool:
+        net = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3), torch.nn.InstanceNorm2d(8))
+        return bool(optimise(net, "disk", precision).channels_last)  # type: ignore[arg-type]
+
+    assert layout("bf16") is True and layout("fp32") is False
+    disk = build_local_extractor(LocalExtractorConfig(long_side=200, max_keypoints=300), "fp32")
+    assert disk.model.unet.channels_last is False  # type: ignore[attr-defined]
+    backbone = build_backbone(BackboneConfig("mobilenetv2", 160), precision="fp32")
+    assert backbone.trunk.channels_last is True  # measured faster in fp32 too
 
 
 def test_folding_batchnorm_keeps_the_backbone_output() -> None:

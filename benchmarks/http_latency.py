@@ -62,15 +62,17 @@ def served(
         "OMP_NUM_THREADS": str(threads),
     }
     loopnet = Path(sys.executable).with_name("loopnet")
-    server = subprocess.Popen(
-        [str(loopnet), "serve"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
+    # the log goes to a file: a pipe nobody reads fills after a few hundred requests' log
+    # lines and blocks the server (200 queries hung this benchmark)
+    log = (data_dir / "server.log").open("w+b")
+    server = subprocess.Popen([str(loopnet), "serve"], env=env, stdout=log, stderr=log)
     client = httpx.Client(base_url=f"http://127.0.0.1:{port}/v1", timeout=120.0)
     try:
         deadline = time.monotonic() + 300
         while True:
             if server.poll() is not None:
-                raise RuntimeError(f"the server exited: {server.stderr.read().decode()[-2000:]}")  # type: ignore[union-attr]
+                log.seek(0)
+                raise RuntimeError(f"the server exited: {log.read().decode()[-2000:]}")
             try:
                 ready = client.get("/ready")
                 if ready.status_code == 200:
@@ -85,6 +87,7 @@ def served(
         client.close()
         server.terminate()
         server.wait(30)
+        log.close()
 
 
 def percentiles(samples: list[float]) -> str:

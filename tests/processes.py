@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -41,28 +42,33 @@ def service_env(data_dir: Path, **extra: str) -> dict[str, str]:
 def serving(env: dict[str, str], *, wait: bool = True, timeout: float = 120) -> Iterator[str]:
     """Run ``loopnet serve``; yields its URL (once ready, unless ``wait`` is false)."""
     url = f"http://127.0.0.1:{env['LOOPNET_PORT']}"
-    server = subprocess.Popen(
-        [*LOOPNET, "serve"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
-    try:
-        deadline = time.monotonic() + timeout
-        while wait:
-            try:
-                if httpx.get(f"{url}/v1/ready").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert server.poll() is None, server.stdout.read()  # type: ignore[union-attr]
-            assert time.monotonic() < deadline, f"server not ready in {timeout} s"
-            time.sleep(0.3)
-        yield url
-    finally:
-        server.send_signal(signal.SIGTERM)
+    # a file, not a pipe: nobody reads the log while the server runs, and a full pipe (a few
+    # hundred requests' log lines) blocks the server
+    with tempfile.TemporaryFile("w+") as log:
+        server = subprocess.Popen(
+            [*LOOPNET, "serve"], env=env, stdout=log, stderr=subprocess.STDOUT
+        )
         try:
-            server.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+            deadline = time.monotonic() + timeout
+            while wait:
+                try:
+                    if httpx.get(f"{url}/v1/ready").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if server.poll() is not None:
+                    log.seek(0)
+                    raise AssertionError(f"the server exited: {log.read()[-4000:]}")
+                assert time.monotonic() < deadline, f"server not ready in {timeout} s"
+                time.sleep(0.3)
+            yield url
+        finally:
+            server.send_signal(signal.SIGTERM)
+            try:
+                server.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait()
 
 
 def create_token(data_dir: Path, name: str, role: str, atlases: tuple[str, ...] = ()) -> str:

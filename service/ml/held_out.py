@@ -28,7 +28,10 @@ from service.ml.training import TrainingData, split_shots
 
 HELD_OUT_SHARE = CalibrationConfig().impostor_holdout  # as the impostor probe holds out
 BLOCK_VALUES = 1 << 24  # similarities (and right-answer flags) held at once: held-out x atlas
-AP_FRAMES = 2048  # held-out frames (evenly spread) whose whole ranking is scored: a sort each
+# held-out frames (evenly spread) the gate judges by: each is compared with every atlas frame,
+# so the gate's cost stays bounded on large atlases (a fifth of 1M frames would be 2e14 FLOP)
+JUDGED_FRAMES = 8192
+AP_FRAMES = 2048  # of those, the ones whose whole ranking is scored: a sort each
 
 
 @dataclass(frozen=True)
@@ -73,16 +76,25 @@ def _average_precision(similarity: np.ndarray, right: np.ndarray) -> float:
     return float(np.mean(np.arange(1, len(ranks) + 1) / ranks))
 
 
+def _evenly(frames: np.ndarray, most: int) -> np.ndarray:
+    """At most ``most`` of ``frames``, evenly spread (all of them when there are fewer)."""
+    if len(frames) <= most:
+        return frames
+    picked: np.ndarray = frames[np.linspace(0, len(frames) - 1, most).astype(int)]
+    return picked
+
+
 def held_out_scores(
     heads: LoopNetHeads, data: TrainingData, held_out: np.ndarray, window: int
 ) -> HeldOutScores:
     """Ranks every other frame of the atlas (by the heads' embedding) for each ``held_out``
-    frame; right ones are in its submap, or of its robot at most ``window`` frames away: a place
+    frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap, or of its robot at most ``window`` frames away: a place
     no training step saw must still find its own neighbourhood, not a trained place. (Only
     stretch edges would have a right answer among the frames outside the stretches.)"""
     embeddings = embed_vectors(heads, data.local, data.global_)
     codes, rank, _ = data.sequence
-    ranked = set(held_out[np.linspace(0, len(held_out) - 1, AP_FRAMES).astype(int)].tolist())
+    held_out = _evenly(held_out, JUDGED_FRAMES)
+    ranked = set(_evenly(held_out, AP_FRAMES).tolist())
     block = max(1, BLOCK_VALUES // len(embeddings))
     hits = 0
     precisions: list[float] = []
@@ -115,6 +127,7 @@ def compare_on_held_out(
     after = held_out_scores(new, data, held_out, window)
     return {
         "frames": int(len(held_out)),
+        "judged_frames": min(len(held_out), JUDGED_FRAMES),
         "judged_on": "held-out stretches: the other frames of their submap or within "
         f"{window} frames, nearest (accuracy) and all ranked (mean average precision)",
         "active": round(before.accuracy, 4),

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from service.jobs.retraining import _verdict
+from service.ml import held_out
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import _average_precision, compare_on_held_out, split_for_job
 from service.ml.training import TrainingConfig, TrainingData, train_heads
@@ -109,3 +111,18 @@ def test_submaps_inside_a_held_out_stretch_stay_nameable() -> None:
         )
     named = np.asarray(trained.heads.class_labels)[logits.argmax(dim=1).numpy()]
     assert np.mean(named == data.submaps[HELD]) >= 0.9
+
+
+def test_the_gate_judges_an_evenly_spread_share_of_a_large_hold_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    data = route()
+    split = split_for_job(data, 3)
+    config = HeadsConfig(local_dim=64, global_dim=64, alpha=0.5)
+    heads = LoopNetHeads(config).eval()
+    full = compare_on_held_out(heads, heads, data, split.held_out, 2)
+    monkeypatch.setattr(held_out, "JUDGED_FRAMES", 4)
+    capped = compare_on_held_out(heads, heads, data, split.held_out, 2)
+    assert full["judged_frames"] == len(HELD) and capped["judged_frames"] == 4
+    assert capped["frames"] == len(HELD) and capped["not_worse"] is True
+    assert held_out._evenly(np.arange(20), 4).tolist() == [0, 6, 12, 19]

@@ -108,8 +108,8 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
         "Submap accuracy (classifier): the classification head's submap holds a right "
         "reference. Training uses the retraining job's default parameters. Gate: the job's "
         "not-worse check, the starting and the new heads' nearest-frame accuracy and mean average "
-        "precision on held-out stretches of the map (frames); served R@1: the new version's when the gate passes it, else the "
-        "starting row's.",
+        "precision on held-out stretches of the map (frames); served R@1: the new version's "
+        "when the gate passes it, else the starting row's.",
     ]
     return "\n".join(lines)
 

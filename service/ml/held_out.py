@@ -88,9 +88,10 @@ def held_out_scores(
     heads: LoopNetHeads, data: TrainingData, held_out: np.ndarray, window: int
 ) -> HeldOutScores:
     """Ranks every other frame of the atlas (by the heads' embedding) for each ``held_out``
-    frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap, or of its robot at most ``window`` frames away: a place
-    no training step saw must still find its own neighbourhood, not a trained place. (Only
-    stretch edges would have a right answer among the frames outside the stretches.)"""
+    frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap, or of its
+    robot at most ``window`` frames away: a place no training step saw must still find its own
+    neighbourhood, not a trained place. (Only stretch edges would have a right answer among the
+    frames outside the stretches.)"""
     embeddings = embed_vectors(heads, data.local, data.global_)
     codes, rank, _ = data.sequence
     held_out = _evenly(held_out, JUDGED_FRAMES)

@@ -55,7 +55,8 @@ class ModelPolicy:
 # unmeasured (no weights on the development machine): fp32.
 MODEL_POLICIES: dict[str, ModelPolicy] = {
     # fp32 DISK in NCHW: its fp32 InstanceNorms copy a channels-last input to NCHW and back,
-    # 0.80x of kornia's speed at 512 px on an AVX2 EPYC (NCHW: 1.04x; RESULTS.md, stop 22)
+    # 0.80-0.85x of kornia's speed at 512 px on an AVX2 EPYC (NCHW: 0.93-1.04x; RESULTS.md,
+    # fifth session)
     "disk": ModelPolicy(float_outputs=False, channels_last_fp32=False),
     "xfeat": ModelPolicy(bf16=False, channels_last=False),
     "mobilenetv2": ModelPolicy(bf16=False, fold_batchnorm=True),

@@ -9,7 +9,7 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
-from service.api import metrics
+from service.api import metrics, slashes
 from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
 from service.api.guard import RequestGuard
@@ -90,8 +90,9 @@ def create_app(
     )
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
-    metrics.install(app, runtime)
+    metrics.install(app)
     install_console(app)
+    slashes.install(app.router)
     app.add_middleware(RequestLogMiddleware, log_format=runtime.settings.log_format)
     return app
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.fleet.keys import Role, issue
 from service.fleet.snapshot_restore import RESTORING_PREFIX
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
@@ -17,11 +18,12 @@ from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 from tests.fleet.snapshot_helpers import deployment_env, loopnet
 
 
-def query(client: TestClient, atlas: str):  # type: ignore[no-untyped-def]
+def query(client: TestClient, atlas: str, **headers: str):  # type: ignore[no-untyped-def]
     return client.post(
         f"/v1/atlases/{atlas}/query",
         data={"k": "1"},
         files={"image": ("q.jpg", gardens_point_day_night(1, "query"))},
+        headers=headers,
     )
 
 
@@ -55,6 +57,15 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
         listing = client.get("/v1/atlases")
         assert listing.status_code == 200
         assert sorted(a["name"] for a in listing.json()) == ["healthy", "restored"]
+        # issue 24: once keys are on, a caller without one learns only how many
+        sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+        key = {"X-API-Key": issue(sessions, name="ops", role=Role.operator, atlases=[]).token}
+        client.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
+        anonymous = client.get("/v1/ready").json()
+        assert anonymous["unavailable_atlases"] == {} and "restored" not in str(anonymous)
+        assert anonymous["detail"] == "ready; 1 atlas(es) unavailable"
+        keyed = client.get("/v1/ready", headers=key).json()
+        assert list(keyed["unavailable_atlases"]) == ["restored"]
 
     check = loopnet(env, "atlas", "check")
     assert check.returncode == 1
@@ -68,8 +79,8 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
 
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
-        assert client.get("/v1/ready").json()["unavailable_atlases"] == {}
-        answer = query(client, "restored")
+        assert client.get("/v1/ready", headers=key).json()["unavailable_atlases"] == {}
+        answer = query(client, "restored", **key)
         assert answer.status_code == 200, answer.text
         assert answer.json()["model_version"] == 1
 

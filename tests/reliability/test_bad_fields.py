@@ -53,6 +53,37 @@ def test_deeply_nested_json_fields_are_422(client: TestClient, field: str) -> No
 
 
 @pytest.mark.parametrize(
+    ("route", "field"),
+    [
+        ("frames", "pose"),
+        ("frames", "intrinsics"),
+        ("query", "intrinsics"),
+        ("observe", "pose"),
+        ("observe", "intrinsics"),
+        ("frames:features", "pose"),  # the form is read before the payload there
+    ],
+)
+def test_numbers_past_the_integer_conversion_limit_are_422(
+    client: TestClient, route: str, field: str
+) -> None:
+    """Issue 24: a number of more than 4,300 digits in a JSON form field made ``json.loads``
+    raise a bare ValueError inside the form parser: a 500."""
+    from tests.reliability.hostile import long_number_fields
+
+    upload = "features" if route.endswith(":features") else "image"
+    files = {upload: ("f.bin", gardens_point_day_night(2, "ref"))}
+    fields = {"submap": "s0", "robot_id": "r1"} if route != "query" else {}
+    for value in long_number_fields():
+        before = stored_state(client)
+        response = client.post(
+            f"/v1/atlases/campus/{route}", data={**fields, field: value}, files=files
+        )
+        assert response.status_code == 422, response.text
+        assert "digits" in response.json()["detail"]
+        assert stored_state(client) == before
+
+
+@pytest.mark.parametrize(
     ("method", "path", "payload"),
     [
         ("POST", "/v1/atlases", {"name": "a", "description": "before\x00after"}),

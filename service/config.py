@@ -20,28 +20,63 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="LOOPNET_", env_file=None, extra="ignore")
 
-    data_dir: Path = Field(Path("./loopnet-data"), description="Database, indexes and models.")
+    data_dir: Path = Field(
+        Path("./loopnet-data"),
+        description="The database (SQLite by default), FAISS indexes, model versions and the job "
+        "queue; created owner-only (0700), the SQLite files 0600.",
+    )
     database_url: str | None = Field(
-        None, description="SQLAlchemy URL; default: a SQLite file in the data directory."
+        None,
+        description="SQLAlchemy URL of the database, e.g. postgresql+psycopg://user:pass@host/db;"
+        " unset: a SQLite file loopnet.sqlite3 in the data directory.",
     )
     model_preset: str = Field(
-        "default", description="'default' (CPU-sized), 'fast' (XFeat, tens of ms) or 'paper'."
+        "default",
+        description="'default' (DISK at 512 px, 1024 keypoints, MobileNetV2 at 224 px), 'fast' "
+        "(XFeat at 320 px, 512 keypoints, MobileNetV2 at 160 px: CPU-only robots and servers) or "
+        "'paper' (DISK at 1024 px, 2048 keypoints, ResNet-18). An atlas keeps the features it was "
+        "built with: a service running other settings answers 409 for it.",
     )
-    backbone: str | None = Field(None, description="Override the preset's global backbone.")
-    long_side: int | None = Field(None, ge=32, le=4096, description="Override DISK's long side.")
-    max_keypoints: int | None = Field(None, ge=16, le=16384, description="Override top-n.")
-    alpha: float | None = Field(None, ge=0.0, le=1.0, description="Override the fusion weight.")
+    backbone: str | None = Field(
+        None, description="The global backbone, 'mobilenetv2' or 'resnet18'; unset: the preset's."
+    )
+    long_side: int | None = Field(
+        None,
+        ge=32,
+        le=4096,
+        description="The local extractor's working long side in pixels (frames are resized up or "
+        "down to it); unset: the preset's.",
+    )
+    max_keypoints: int | None = Field(
+        None, ge=16, le=16384, description="Keypoints kept per frame (top-n); unset: the preset's."
+    )
+    alpha: float | None = Field(
+        None,
+        ge=0.0,
+        le=1.0,
+        description="Fusion weight of the local branch in the uncalibrated blend an atlas serves "
+        "before its first calibration; unset: the preset's (0.7, the paper's). A calibration "
+        "carries its own (default 0.5, on standardised cosines).",
+    )
     loop_closure_threshold: float = Field(
-        0.90, ge=-1.0, le=1.0, description="Cosine similarity at or above which a match is a loop."
+        0.90,
+        ge=-1.0,
+        le=1.0,
+        description="On uncalibrated model versions: the cosine similarity at or above which the "
+        "best match may be a loop closure (it must also be verified).",
     )
     matcher: str = Field(
         "mnn",
         description="Local-feature matcher of geometric verification: 'mnn' (mutual nearest "
-        "neighbours + ratio test, any extractor), 'lightglue' (LightGlue-DISK) or 'auto' "
-        "(LightGlue for DISK, MNN otherwise).",
+        "neighbours + ratio test, any extractor), 'lightglue' (LightGlue-DISK, DISK only; seconds "
+        "a candidate on a CPU) or 'auto' (LightGlue for DISK, MNN otherwise).",
     )
     verify_top: int = Field(
-        5, ge=0, le=100, description="Best retrieval candidates verified per query; 0: none."
+        5,
+        ge=0,
+        le=100,
+        description="Best retrieval candidates verified per query (matches + RANSAC); 0 turns "
+        "verification off.",
     )
     loop_score_min: float = Field(
         2.0,
@@ -66,12 +101,15 @@ class Settings(BaseSettings):
     verify_min_inliers: int | None = Field(
         None,
         ge=1,
-        description="RANSAC inliers at or above which a candidate is verified; default: the "
-        "matcher's own (service.ml.verification.DEFAULT_MIN_INLIERS).",
+        description="RANSAC inliers at or above which a candidate is verified; unset: the "
+        "atlas calibration's (fitted above its hard impostors), else the matcher's own default "
+        "(service.ml.verification.DEFAULT_MIN_INLIERS).",
     )
-    verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="MNN matcher's ratio test.")
+    verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="Lowe's ratio of the MNN matcher.")
     ransac_threshold_px: float = Field(
-        3.0, gt=0.0, description="RANSAC inlier threshold (pixels of the decoded image)."
+        3.0,
+        gt=0.0,
+        description="RANSAC inlier threshold in pixels of the decoded image (Sampson distance).",
     )
     ransac_backend: Literal["batched", "kornia"] = Field(
         "batched",
@@ -80,10 +118,16 @@ class Settings(BaseSettings):
         "candidate at a time; inlier counts agree within a few). Essential matrices use kornia.",
     )
     exclude_recent_frames: int = Field(
-        20, ge=0, description="The asking robot's last N frames never count as a loop closure."
+        20,
+        ge=0,
+        description="The asking robot's last N frames never count as a loop closure (per request:"
+        " exclude_recent_frames).",
     )
     exclude_recent_seconds: float = Field(
-        30.0, ge=0.0, description="Nor do its frames taken within T seconds of the query."
+        30.0,
+        ge=0.0,
+        description="Nor do its frames taken within T seconds of the query's timestamp, or of its"
+        " latest frame's (per request: exclude_recent_seconds).",
     )
     sequence_length: int = Field(
         10,
@@ -95,7 +139,8 @@ class Settings(BaseSettings):
     sequence_max_gap_seconds: float = Field(
         10.0,
         gt=0.0,
-        description="A robot's frames further apart in time than this start a new sequence.",
+        description="A robot's frames further apart in time than this start a new sequence (so "
+        "does a timestamp going backwards).",
     )
     sequence_seed_frames: int = Field(
         0,
@@ -122,10 +167,22 @@ class Settings(BaseSettings):
         description="Consecutive agreeing observations of a robot before a loop closure is "
         "accepted (DBoW2's temporal consistency; 1: no check).",
     )
-    max_upload_bytes: int = Field(ImageLimits.max_bytes, ge=1024)
-    max_image_pixels: int = Field(ImageLimits.max_pixels, ge=1024)
+    max_upload_bytes: int = Field(
+        ImageLimits.max_bytes,
+        ge=1024,
+        description="Larger uploads get 413 (a request body may be 1 MiB larger, for the form "
+        "around the file; beyond that, 413 before it is read).",
+    )
+    max_image_pixels: int = Field(
+        ImageLimits.max_pixels,
+        ge=1024,
+        description="Larger images get 413, checked from the header before decoding.",
+    )
     max_snapshot_bytes: int = Field(
-        4 * 1024**3, ge=1024, description="Largest snapshot archive POST /v1/snapshots accepts."
+        4 * 1024**3,
+        ge=1024,
+        description="Larger snapshot uploads (POST /v1/snapshots) get 413, by Content-Length or "
+        "while streaming.",
     )
     max_k: int = Field(100, ge=1, le=10_000, description="Largest k a query may ask for.")
     model_poll_seconds: float = Field(
@@ -135,19 +192,23 @@ class Settings(BaseSettings):
         "(a newly activated version arrives through the change feed, every LOOPNET_SYNC_SECONDS).",
     )
     redis_url: str | None = Field(
-        None, description="Redis URL for the job queue; default: a SQLite queue in the data dir."
+        None,
+        description="Redis URL of the job queue (fleets: workers on other machines); unset: a "
+        "SQLite queue file queue.sqlite3 in the data directory.",
     )
     queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
     torch_threads: int | None = Field(
         1,
         ge=1,
-        description="torch intra-op threads per inference (unset: torch's, every core). One: "
-        "concurrent requests then fill the cores (8 robots ingesting: 1.3-1.6x the frames/s of "
-        "two threads) and no thread spins at a barrier beside a busy core; two only shorten a "
-        "single client's default-preset query.",
+        description="torch intra-op threads per inference; cores / threads inferences run at "
+        "once. One (the default) lets concurrent requests fill the cores and keeps threads from "
+        "spinning at barriers beside a busy core; two only shorten a single client's query on "
+        "an idle machine (docs/performance.md).",
     )
     offline: bool = Field(
-        False, description="Never download missing pretrained weights (air-gapped installs)."
+        False,
+        description="Never download missing pretrained weights (air-gapped installs); a missing "
+        "file is then an error naming where to put it.",
     )
     job_stale_seconds: float = Field(
         600.0,
@@ -164,29 +225,36 @@ class Settings(BaseSettings):
         None,
         ge=1,
         le=256,
-        description="Concurrent inferences; default: cores / torch threads (times max_batch "
-        "when batching is on, so that a batch can fill).",
+        description="Images decoded and run through the CNNs at once; unset: cores / torch "
+        "threads (times max_batch when batching is on, so that a batch can fill).",
     )
     precision: Literal["auto", "fp32", "bf16"] = Field(
         "auto",
-        description="CNN arithmetic: 'auto' = bf16 where the CPU computes it natively "
-        "(AVX512-BF16 or AMX), else fp32; 'fp32' forces float32.",
+        description="CNN arithmetic: 'auto' runs DISK in bf16 (bf16 weights, InstanceNorm "
+        "statistics in float32) and re-embedding's products in bf16 where the CPU computes bf16 "
+        "natively (AVX512-BF16 or AMX), fp32 elsewhere; 'fp32' forces float32; 'bf16' forces bf16"
+        " (fails at start on a CPU without it).",
     )
     batch_window_ms: float = Field(
         0.0,
         ge=0.0,
         le=1000.0,
-        description="Concurrent frames arriving within this window share one CNN batch; 0: off.",
+        description="Concurrent frames arriving within this window run through the CNNs as one "
+        "batch; a request waits at most the window plus its batch's inference; 0: off.",
     )
     max_batch: int = Field(8, ge=1, le=256, description="Most frames in one CNN batch.")
     parallel_branches: Literal["auto", "on", "off"] = Field(
         "auto",
         description="Run a frame's local extractor and global backbone side by side in two "
-        "threads: 'auto' = when torch threads x 2 <= cores (e.g. LOOPNET_TORCH_THREADS=1 on 2 "
-        "cores).",
+        "threads while it is the only frame being extracted (same features): 'auto' = when torch"
+        " threads x 2 <= cores (e.g. LOOPNET_TORCH_THREADS=1 on 2 cores); 'on' / 'off' force it.",
     )
     inference_queue: int = Field(
-        16, ge=0, le=4096, description="Requests that may wait for an inference slot; more: 503."
+        16,
+        ge=0,
+        le=4096,
+        description="Requests that may wait for an inference slot (first come, first served); "
+        "one more gets 503 with Retry-After.",
     )
     inference_wait_seconds: float = Field(
         30.0, gt=0, description="Longest wait for an inference slot before answering 503."
@@ -195,36 +263,54 @@ class Settings(BaseSettings):
         1.0,
         ge=0.05,
         le=3600,
-        description="How often a process applies frames added or removed and model versions "
-        "activated by any process.",
+        description="How often each API process applies the frames added or deleted and the "
+        "model versions activated through any process: the bound on cross-process delay.",
     )
     change_retention_seconds: float = Field(
-        3600.0, ge=60, description="How long the frame change log is kept."
+        3600.0,
+        ge=60,
+        description="How long the frame change log is kept; a process further behind "
+        "reconciles its whole index instead.",
     )
     auth: Literal["auto", "required", "off"] = Field(
         "auto",
-        description="API keys: 'auto' = required once a key exists, 'required' always, 'off' never.",
+        description="API keys: 'auto' = required as soon as a key has ever been created, for "
+        "good (the embedded service runs open until then, and says so at start); 'required' "
+        "always (the container image's default; anything listening beyond loopback should run "
+        "it); 'off' never.",
     )
     snapshot_max_member_bytes: int = Field(
-        1024**3, ge=1024, description="Largest member (uncompressed) a snapshot restore reads."
+        1024**3,
+        ge=1024,
+        description="A snapshot member (uncompressed, by its header) beyond this is refused "
+        "(422) before it is read.",
     )
     snapshot_max_total_bytes: int = Field(
-        2 * 1024**3, ge=1024, description="Largest sum of members a snapshot restore reads."
+        2 * 1024**3,
+        ge=1024,
+        description="Nor may a snapshot's members (and the arrays inside features.npz) add up to"
+        " more.",
     )
     log_format: Literal["json", "text"] = Field(
-        "json", description="Per-request log lines: one JSON object each, or plain text."
+        "json",
+        description="One line per request on stderr (logger loopnet.access): a JSON object with "
+        "ts, method, route (template), path, status, duration_ms, atlas, robot, request_id; "
+        "'text' writes the same fields as key=value.",
     )
     metrics_public: bool = Field(
-        True, description="Serve GET /metrics without a key (false: an operator key)."
+        True, description="Serve GET /metrics without a key; false: an operator key is needed."
     )
     auth_failure_limit: int = Field(
-        20, ge=1, description="Failed authentications one client address may make per window."
+        20,
+        ge=1,
+        description="Failed authentications (401) one client address may make per window; "
+        "beyond, 429 with Retry-After (counted per process).",
     )
     auth_failure_window_seconds: float = Field(
         60.0, gt=0, description="The window of auth_failure_limit; beyond it, 429."
     )
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
+    host: str = Field("127.0.0.1", description="The address `loopnet serve` listens on.")
+    port: int = Field(8000, ge=1, le=65535, description="The port `loopnet serve` listens on.")
 
     @model_validator(mode="after")
     def _workers_fill_batches(self) -> Settings:

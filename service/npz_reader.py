@@ -18,6 +18,8 @@ import io
 import math
 import zipfile
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -81,8 +83,13 @@ class NpzReader:
                     f"{info.compress_type}; only stored (0) and deflate (8) are read"
                 )
             self.members[info.filename] = info
+        # members whose header was read, left open just past it: each is inflated once
+        self._opened: dict[str, tuple[IO[bytes], ArrayHeader]] = {}
 
     def close(self) -> None:
+        for member, _ in self._opened.values():
+            member.close()
+        self._opened.clear()
         self._zip.close()
 
     def __enter__(self) -> NpzReader:
@@ -97,14 +104,20 @@ class NpzReader:
         return {name.removesuffix(".npy") for name in self.members}
 
     def header(self, name: str) -> ArrayHeader:
-        """Array ``name``'s declared shape and type, read without touching its data."""
-        with self._open(name) as member:
-            return self._header(name, member)
+        """Array ``name``'s declared shape and type, read without touching its data (the
+        member stays open there, so reading the array later inflates nothing twice)."""
+        if name not in self._opened:
+            member = self._open(name)
+            try:
+                self._opened[name] = (member, self._header(name, member))
+            except BaseException:
+                member.close()
+                raise
+        return self._opened[name][1]
 
     def read(self, name: str, max_bytes: int) -> np.ndarray:
         """Array ``name`` in memory, refused unread when it declares more than ``max_bytes``."""
-        with self._open(name) as member:
-            header = self._bounded_header(name, member, max_bytes)
+        with self._data(name, max_bytes) as (member, header):
             buffer = bytearray(header.nbytes)
             self._fill(name, member, memoryview(buffer))
         return _as_array(buffer, header)
@@ -112,8 +125,7 @@ class NpzReader:
     def extract(self, name: str, target: Path, max_bytes: int) -> np.ndarray:
         """Array ``name`` written to the ``.npy`` file ``target`` in bounded chunks, returned
         memory-mapped (read-only); refused unread when it declares more than ``max_bytes``."""
-        with self._open(name) as member:
-            header = self._bounded_header(name, member, max_bytes)
+        with self._data(name, max_bytes) as (member, header):
             with target.open("wb") as out:
                 np.lib.format.write_array_header_1_0(
                     out,
@@ -134,6 +146,21 @@ class NpzReader:
         return np.load(target, mmap_mode="r", allow_pickle=False)
 
     # ----- helpers -------------------------------------------------------------------------
+
+    @contextmanager
+    def _data(self, name: str, max_bytes: int) -> Iterator[tuple[IO[bytes], ArrayHeader]]:
+        """The member positioned at its data, its header within ``max_bytes``; closed after."""
+        header = self.header(name)
+        member = self._opened.pop(name)[0]
+        try:
+            if header.nbytes > max_bytes:
+                raise InvalidInput(
+                    f"{self.what}'s array '{name}' declares shape {header.shape} of "
+                    f"{header.dtype} ({header.nbytes} bytes); at most {max_bytes} bytes fit here"
+                )
+            yield member, header
+        finally:
+            member.close()
 
     def _open(self, name: str) -> IO[bytes]:
         info = self.members.get(f"{name}.npy")
@@ -170,15 +197,6 @@ class NpzReader:
                 f"{self.what}'s array '{name}' has type {dtype}: only plain numbers and text"
             )
         return ArrayHeader(tuple(int(n) for n in shape), dtype, bool(fortran))
-
-    def _bounded_header(self, name: str, member: IO[bytes], max_bytes: int) -> ArrayHeader:
-        header = self._header(name, member)
-        if header.nbytes > max_bytes:
-            raise InvalidInput(
-                f"{self.what}'s array '{name}' declares shape {header.shape} of {header.dtype} "
-                f"({header.nbytes} bytes); at most {max_bytes} bytes fit here"
-            )
-        return header
 
     def _chunk(self, name: str, member: IO[bytes], size: int) -> bytes:
         try:

@@ -24,10 +24,10 @@ class SlashRedirect:
         path: str = scope["path"]
         if scope["type"] == "http" and path != "/":
             toggled = path.rstrip("/") if path.endswith("/") else path + "/"
-            if toggled.startswith("/") and not toggled.startswith("//"):  # never protocol-relative
-                if self._matches({**scope, "path": toggled}):
-                    await RedirectResponse(_location(scope, toggled), 307)(scope, receive, send)
-                    return
+            relative = toggled.startswith("/") and not toggled.startswith("//")  # not "//host"
+            if relative and self._matches({**scope, "path": toggled}):
+                await RedirectResponse(_location(scope, toggled), 307)(scope, receive, send)
+                return
         await self.router.not_found(scope, receive, send)
 
     def _matches(self, scope: Scope) -> bool:

@@ -13,7 +13,9 @@ from service.api import metrics, slashes
 from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
 from service.api.guard import RequestGuard
+from service.api.host_guard import HostOriginGuard
 from service.api.request_log import RequestLogMiddleware
+from service.api.security_headers import SecurityHeaders
 from service.api.routes import (
     atlases,
     browse,
@@ -93,6 +95,10 @@ def create_app(
     metrics.install(app)
     install_console(app)
     slashes.install(app.router)
+    # outermost last: the log sees every answer, every answer gets the security headers, and
+    # a foreign Host or origin is refused before authentication and the body
+    app.add_middleware(HostOriginGuard, settings=runtime.settings)
+    app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestLogMiddleware, log_format=runtime.settings.log_format)
     return app
 

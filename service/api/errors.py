@@ -26,6 +26,7 @@ from service.errors import (
     RequestTooLarge,
     TooManyFailures,
     Unauthorized,
+    UnknownHost,
     WeightsUnavailable,
 )
 
@@ -56,6 +57,7 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (NotReady, 503),
     (Overloaded, 503),
     (WeightsUnavailable, 503),
+    (UnknownHost, 400),
 ]
 
 

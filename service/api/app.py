@@ -15,7 +15,6 @@ from service.api.errors import install_error_handlers
 from service.api.guard import RequestGuard
 from service.api.host_guard import HostOriginGuard
 from service.api.request_log import RequestLogMiddleware
-from service.api.security_headers import SecurityHeaders
 from service.api.routes import (
     atlases,
     browse,
@@ -28,6 +27,7 @@ from service.api.routes import (
     queries,
     snapshots,
 )
+from service.api.security_headers import SecurityHeaders
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
 from service.console.router import install as install_console

@@ -57,9 +57,8 @@ def test_decodes_wait_for_room_and_give_up_after_the_wait() -> None:
     budget = DecodeBudget(100, 0.2)
     with budget.reserve(60):
         started = time.monotonic()
-        with pytest.raises(Overloaded):
-            with budget.reserve(60):
-                pass
+        with pytest.raises(Overloaded), budget.reserve(60):
+            pass
         assert 0.15 < time.monotonic() - started < 2
         released: list[float] = []
 

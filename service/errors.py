@@ -69,3 +69,7 @@ class RequestTooLarge(LoopNetError):
 
 class UnknownHost(LoopNetError):
     """The request's Host header names a host this service does not answer to."""
+
+
+class RequestTimeout(LoopNetError):
+    """The request body stopped arriving (LOOPNET_BODY_TIMEOUT_SECONDS)."""

@@ -23,6 +23,7 @@ from service.errors import (
     NotFound,
     NotReady,
     Overloaded,
+    RequestTimeout,
     RequestTooLarge,
     TooManyFailures,
     Unauthorized,
@@ -58,6 +59,7 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (Overloaded, 503),
     (WeightsUnavailable, 503),
     (UnknownHost, 400),
+    (RequestTimeout, 408),
 ]
 
 

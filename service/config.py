@@ -280,16 +280,23 @@ class Settings(BaseSettings):
         "it); 'off' never.",
     )
     snapshot_max_member_bytes: int = Field(
-        1024**3,
+        4 * 1024**3,
         ge=1024,
         description="A snapshot member (uncompressed, by its header) beyond this is refused "
-        "(422) before it is read.",
+        "(422) before it is read. Members are streamed to a temporary folder (TMPDIR; keep it "
+        "on disk, not tmpfs), never held in memory. The default takes the largest member "
+        "(features.npz) of any archive within LOOPNET_MAX_SNAPSHOT_BYTES: export writes about "
+        "264 KB a frame there at the default preset with 1,024 keypoints, 77 KB at the fast "
+        "preset with 512 (benchmarks/snapshot_sizes.py).",
     )
     snapshot_max_total_bytes: int = Field(
-        2 * 1024**3,
+        8 * 1024**3,
         ge=1024,
-        description="Nor may a snapshot's members (and the arrays inside features.npz) add up to"
-        " more.",
+        description="Nor may a snapshot's members, nor the arrays inside features.npz "
+        "(inflated: 286 KB and 83 KB a frame), add up to more. The defaults restore any archive"
+        " within LOOPNET_MAX_SNAPSHOT_BYTES (about 15,000 default-preset or 46,000 fast-preset "
+        "frames); a larger atlas (100,000 frames: about 28 GB at the default preset) needs the "
+        "three raised together, and TMPDIR room for about twice the archive.",
     )
     log_format: Literal["json", "text"] = Field(
         "json",

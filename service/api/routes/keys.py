@@ -45,6 +45,8 @@ def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
     status_code=status.HTTP_201_CREATED,
     responses=NOT_FOUND,
     summary="Create an API key",
+    description="Needs an admin key (403 without one, also while the API is open): the first "
+    "key is created on the server with `loopnet keys create --role admin --name NAME`.",
 )
 def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKeyOut:
     if caller.key_id is None:

@@ -47,11 +47,16 @@ def export_member(session: Session, atlas_id: int) -> bytes:
 
 
 def restore_member(
-    session: Session, path: Path | None, frame_id_map: dict[int, int], folder: Path
+    session: Session,
+    path: Path | None,
+    frame_id_map: dict[int, int],
+    folder: Path,
+    max_bytes: int,
 ) -> int:
     """Add the thumbnails of an archive's member at ``path`` under the restored frame ids (an
-    archive written before thumbnails has none: its frames show the placeholder); the JPEGs are
-    inflated into ``folder`` and read one at a time. Returns how many were added."""
+    archive written before thumbnails has none: its frames show the placeholder); the JPEGs,
+    at most ``max_bytes`` of them, are inflated into ``folder`` and read one at a time. Returns
+    how many were added."""
     if path is None:
         return 0
     with NpzReader(path, f"the snapshot's {SNAPSHOT_MEMBER}") as npz:
@@ -59,10 +64,10 @@ def restore_member(
             raise InvalidInput(
                 f"the snapshot's {SNAPSHOT_MEMBER} does not hold the expected arrays"
             )
-        most = path.stat().st_size * 1024  # more than any JPEG's deflate ratio
-        frame_ids = npz.read("frame_ids", most)
-        offsets = npz.read("offsets", most)
-        blob = npz.extract("data", folder / "thumbnails-data.npy", most)
+        frames = len(frame_id_map)  # one thumbnail a frame at most: 8 bytes an id, an offset
+        frame_ids = npz.read("frame_ids", 8 * frames)
+        offsets = npz.read("offsets", 8 * (frames + 1))
+        blob = npz.extract("data", folder / "thumbnails-data.npy", max_bytes)
     if (
         frame_ids.dtype.kind != "i"
         or offsets.dtype.kind != "i"

@@ -10,8 +10,9 @@ failure deletes what was written. Each transaction also marks the hidden atlas a
 (its ``created_at``, set to the restore's time at the end), so that a process starting after
 a restore was killed (SIGKILL, power loss) can tell an abandoned one from a running one:
 :func:`service.fleet.atlas_repair.clean_unfinished_restores` deletes those silent for
-:data:`ABANDONED_AFTER` and reports the others. Frames get new ids; the index is rebuilt from the archived features with the active
-heads and calibration (cheap: no CNN), so a FAISS file from elsewhere is never parsed.
+:data:`ABANDONED_AFTER` and reports the others. Frames get new ids; the index is rebuilt from
+the archived features with the active heads and calibration (cheap: no CNN), so a FAISS file
+from elsewhere is never parsed.
 """
 
 from __future__ import annotations
@@ -120,7 +121,11 @@ def _restore(
         with transaction(sessions) as session:
             _write_loop_closures(session, atlas_id, snapshot, submap_map, frame_map)
             thumbnails.restore_member(
-                session, archive.files.get(thumbnails.SNAPSHOT_MEMBER), frame_map, folder
+                session,
+                archive.files.get(thumbnails.SNAPSHOT_MEMBER),
+                frame_map,
+                folder,
+                limits.max_total_bytes,
             )
             session.execute(
                 update(Atlas).where(Atlas.id == atlas_id).values(name=name, created_at=utcnow())
@@ -142,14 +147,14 @@ def _heads_inputs(
     # R rounded as the store keeps it, so the restored embedding is the stored frame's
     global_vectors = as_stored(features.global_vectors[start:stop])
     if calibration is None:
-        return np.asarray(features.local_vectors[start:stop]), global_vectors
+        return np.array(features.local_vectors[start:stop]), global_vectors  # writable copies
     offsets = features.offsets
     descriptors = [
         features.descriptors[offsets[i] : offsets[i + 1]].astype(np.float32)
         for i in range(start, min(stop, len(features.frame_ids)))
     ]
     scores = [
-        features.scores[offsets[i] : offsets[i + 1]]
+        np.array(features.scores[offsets[i] : offsets[i + 1]])
         for i in range(start, min(stop, len(features.frame_ids)))
     ]
     return calibration.branch_vectors(descriptors, scores, global_vectors)

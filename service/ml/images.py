@@ -85,7 +85,10 @@ def decode_frame(
     keep = REDUCE_MARGIN * working_side if working_side else None
     if keep and image.format in ("JPEG", "MPO") and max(width, height) > 2 * keep:
         ratio = keep / max(width, height)
-        image.draft(image.mode, (max(1, round(width * ratio)), max(1, round(height * ratio))))
+        try:  # scaled in the DCT, to the smallest size still at least ``keep``
+            image.draft(image.mode, (max(1, round(width * ratio)), max(1, round(height * ratio))))
+        except CORRUPT_IMAGE_ERRORS as exc:
+            raise InvalidImage(f"the image could not be decoded (corrupt): {exc}") from exc
     factor = max(1, max(image.size) // keep) if keep else 1
     convert_first = factor > 1 and image.mode not in SHRINKABLE_MODES
     decoded_pixels = image.size[0] * image.size[1]

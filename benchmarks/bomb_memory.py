@@ -35,6 +35,7 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
 from PIL import Image
@@ -131,7 +132,7 @@ def snapshot_bomb(export: bytes, zeros_mib: int) -> bytes:
 
 
 def attack(
-    client: httpx.Client, pid: int, send: list[tuple[str, dict]], workers: int
+    client: httpx.Client, pid: int, send: list[tuple[str, dict[str, Any]]], workers: int
 ) -> tuple[list[int], float]:
     """Statuses of the requests ``send`` sent at once, and the server's peak rise in MB."""
     Path(f"/proc/{pid}/clear_refs").write_text("5")
@@ -169,19 +170,23 @@ def main() -> None:
     ):
         assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
         assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
-        form = {"data": {"submap": "s0", "robot_id": "r1"}}
-        warm = client.post("/v1/atlases/campus/frames", files={"image": ("f.jpg", frame)}, **form)
+        form = {"submap": "s0", "robot_id": "r1"}
+        warm = client.post(
+            "/v1/atlases/campus/frames", files={"image": ("f.jpg", frame)}, data=form
+        )
         assert warm.status_code == 201, warm.text
         result["rss_after_warm_up_mb"] = round(peak_and_current(pid)[1] / MB, 1)
         for kind in args.kinds:
             if kind == "snapshot":
                 export = client.get("/v1/atlases/campus/snapshot").content
                 body = snapshot_bomb(export, args.snapshot_mib)
-                calls = [("/v1/snapshots?name=bomb", {"files": {"archive": ("s.tar.gz", body)}})]
+                calls: list[tuple[str, dict[str, Any]]] = [
+                    ("/v1/snapshots?name=bomb", {"files": {"archive": ("s.tar.gz", body)}})
+                ]
             else:
                 body = image_bomb(kind.upper())
                 upload = {"image": (f"bomb.{kind}", body)}
-                calls = [("/v1/atlases/campus/frames", {"files": upload, **form})]
+                calls = [("/v1/atlases/campus/frames", {"files": upload, "data": form})]
                 calls *= args.concurrency
             statuses, rise = attack(client, pid, calls, len(calls))
             result["attacks"][kind] = {

@@ -122,19 +122,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
     from service.api.app import create_app
+    from service.api.serving import serve
     from service.config import Settings
 
-    settings = Settings()
-    uvicorn.run(
-        create_app(settings),
-        host=args.host or settings.host,
-        port=args.port or settings.port,
-        log_level="info",
-        access_log=False,  # service.api.request_log writes one line per request instead
-    )
+    # --host/--port override LOOPNET_HOST/PORT (the host named is one the API answers to)
+    listen = {name: value for name, value in (("host", args.host), ("port", args.port)) if value}
+    settings = Settings(**listen)  # type: ignore[arg-type]
+    serve(create_app(settings), settings, settings.host, settings.port)
     return 0
 
 

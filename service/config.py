@@ -280,16 +280,23 @@ class Settings(BaseSettings):
         "it); 'off' never.",
     )
     snapshot_max_member_bytes: int = Field(
-        1024**3,
+        4 * 1024**3,
         ge=1024,
         description="A snapshot member (uncompressed, by its header) beyond this is refused "
-        "(422) before it is read.",
+        "(422) before it is read. Members are streamed to a temporary folder (TMPDIR; keep it "
+        "on disk, not tmpfs), never held in memory. The default takes the largest member "
+        "(features.npz) of any archive within LOOPNET_MAX_SNAPSHOT_BYTES: export writes about "
+        "264 KB a frame there at the default preset with 1,024 keypoints, 77 KB at the fast "
+        "preset with 512 (benchmarks/snapshot_sizes.py).",
     )
     snapshot_max_total_bytes: int = Field(
-        2 * 1024**3,
+        8 * 1024**3,
         ge=1024,
-        description="Nor may a snapshot's members (and the arrays inside features.npz) add up to"
-        " more.",
+        description="Nor may a snapshot's members, nor the arrays inside features.npz "
+        "(inflated: 286 KB and 83 KB a frame), add up to more. The defaults restore any archive"
+        " within LOOPNET_MAX_SNAPSHOT_BYTES (about 15,000 default-preset or 46,000 fast-preset "
+        "frames); a larger atlas (100,000 frames: about 28 GB at the default preset) needs the "
+        "three raised together, and TMPDIR room for about twice the archive.",
     )
     log_format: Literal["json", "text"] = Field(
         "json",
@@ -308,6 +315,56 @@ class Settings(BaseSettings):
     )
     auth_failure_window_seconds: float = Field(
         60.0, gt=0, description="The window of auth_failure_limit; beyond it, 429."
+    )
+    # ----- the HTTP boundary (issue 24): hosts, proxies, time-outs, decode memory -----------
+    allowed_hosts: str = Field(
+        "",
+        description="Host names (comma-separated) the API answers to besides the loopback names "
+        "(localhost, 127.0.0.1, ::1) and LOOPNET_HOST when it names one address: put the public "
+        "name clients use here (e.g. loopnet.example.org; '*.example.org' covers subdomains). A "
+        "request naming another Host gets 400, so a DNS-rebinding web page cannot reach the "
+        "service through a visitor's browser. '*' answers any Host (only behind a proxy that "
+        "checks it). GET /v1/health, /v1/ready and /metrics answer any Host: probes and "
+        "Prometheus call them by address.",
+    )
+    trusted_proxies: str = Field(
+        "",
+        description="Reverse proxies (comma-separated addresses or networks, e.g. "
+        "10.0.0.5,172.18.0.0/16; '*' any) whose X-Forwarded-For and X-Forwarded-Proto are "
+        "believed; empty: none, so the client address of the logs and of the failed-"
+        "authentication limit is always the connection's own.",
+    )
+    header_timeout_seconds: float = Field(
+        10.0,
+        gt=0,
+        description="A connection must send a request's complete headers within this many "
+        "seconds of its first byte (of connecting, for the first request); else it is closed.",
+    )
+    body_timeout_seconds: float = Field(
+        30.0,
+        gt=0,
+        description="Longest wait for the next part of a request body; then 408 and the "
+        "connection is closed.",
+    )
+    keep_alive_seconds: int = Field(
+        5, ge=1, description="An idle keep-alive connection is closed after this many seconds."
+    )
+    max_connections: int = Field(
+        1024,
+        ge=1,
+        description="Connections and requests `loopnet serve` holds at once (uvicorn's "
+        "limit_concurrency); beyond, 503.",
+    )
+    decode_memory_bytes: int = Field(
+        1024**3,
+        ge=1024**2,
+        description="Memory the image decodes of one process may hold at once (each its "
+        "estimated peak: the decoded image before it is shrunk to the networks' working size; "
+        "about 4 bytes a pixel for PNG and JPEG, 16 for WebP: 210 MB and 664 MB for 6300 x "
+        "6300). An image that alone needs more gets 413; one that does not fit beside the "
+        "decodes running waits up to LOOPNET_INFERENCE_WAIT_SECONDS, then 503. Keep it above "
+        "16 bytes x LOOPNET_MAX_IMAGE_PIXELS (640 MB at the default) to accept every image the "
+        "pixel limit allows.",
     )
     host: str = Field("127.0.0.1", description="The address `loopnet serve` listens on.")
     port: int = Field(8000, ge=1, le=65535, description="The port `loopnet serve` listens on.")
@@ -343,6 +400,20 @@ class Settings(BaseSettings):
     @property
     def queue_path(self) -> Path:
         return self.data_dir / "queue.sqlite3"
+
+    @property
+    def host_names(self) -> tuple[str, ...]:
+        """The Host names the API answers to (see ``allowed_hosts``), lower case."""
+        names = {"localhost", "127.0.0.1", "::1"}
+        if self.host not in ("0.0.0.0", "::", ""):
+            names.add(self.host.lower())
+        names.update(n.strip().lower() for n in self.allowed_hosts.split(",") if n.strip())
+        return tuple(sorted(names))
+
+    @property
+    def proxies(self) -> list[str]:
+        """The trusted proxies as a list (empty: none)."""
+        return [p.strip() for p in self.trusted_proxies.split(",") if p.strip()]
 
     @property
     def image_limits(self) -> ImageLimits:

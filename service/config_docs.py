@@ -87,6 +87,15 @@ SECTIONS: dict[str, tuple[str, ...]] = {
         "log_format",
         "metrics_public",
     ),
+    "HTTP boundary": (
+        "allowed_hosts",
+        "trusted_proxies",
+        "header_timeout_seconds",
+        "body_timeout_seconds",
+        "keep_alive_seconds",
+        "max_connections",
+        "decode_memory_bytes",
+    ),
 }
 
 HEADER = """\

@@ -65,3 +65,11 @@ class TooManyFailures(LoopNetError):
 
 class RequestTooLarge(LoopNetError):
     """The request body is over the route's byte limit."""
+
+
+class UnknownHost(LoopNetError):
+    """The request's Host header names a host this service does not answer to."""
+
+
+class RequestTimeout(LoopNetError):
+    """The request body stopped arriving (LOOPNET_BODY_TIMEOUT_SECONDS)."""

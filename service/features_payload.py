@@ -18,8 +18,10 @@ array              dtype           meaning
 
 Everything is checked before anything is written: the signature, the names, shapes, dtypes and
 sizes, finite values, unit norms, keypoints inside the frame, at most the signature's
-``max_keypoints``. The archive's declared sizes are read before any array is inflated, so a zip
-bomb is refused unopened. :func:`encode_features` writes the payload from the same
+``max_keypoints``. The archive is read by :class:`~service.npz_reader.NpzReader`: each array's
+declared shape is checked against the most bytes it may take for this atlas's features before
+a byte of it is inflated, so a zip bomb or a header declaring 10^12 values is refused unread,
+and encrypted members, other compression methods or corrupt data are a 422 too. :func:`encode_features` writes the payload from the same
 :class:`FrameFeatures` the server's own pipeline produces.
 """
 
@@ -27,7 +29,6 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 
 import numpy as np
 
@@ -35,10 +36,10 @@ from service.errors import InvalidInput
 from service.ml.aggregation import aggregate_descriptors
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.presets import FeatureSignature
+from service.npz_reader import NpzReader
 
 ARRAYS = ("signature", "image_size", "keypoints", "descriptors", "scores", "global_vector")
 NORM_TOLERANCE = 1e-3  # unit vectors sent as float16 are within ~1e-3 of norm 1
-HEADER_BYTES = 4096  # generous room for each .npy header
 
 
 def encode_features(features: FrameFeatures, signature: FeatureSignature) -> bytes:
@@ -108,46 +109,25 @@ def decode_features(
 
 
 def _size_limits(local_dim: int, global_dim: int, max_keypoints: int) -> dict[str, int]:
-    """The most bytes each member may inflate to (float64 at worst)."""
+    """The most bytes each array may declare (float64 at worst)."""
     return {
         "signature": 64 * 1024,
-        "image_size": HEADER_BYTES + 16,
-        "keypoints": HEADER_BYTES + max_keypoints * 2 * 8,
-        "descriptors": HEADER_BYTES + max_keypoints * local_dim * 8,
-        "scores": HEADER_BYTES + max_keypoints * 8,
-        "global_vector": HEADER_BYTES + global_dim * 8,
+        "image_size": 16,
+        "keypoints": max_keypoints * 2 * 8,
+        "descriptors": max_keypoints * local_dim * 8,
+        "scores": max_keypoints * 8,
+        "global_vector": global_dim * 8,
     }
 
 
 def _read_archive(data: bytes, limits: dict[str, int]) -> dict[str, np.ndarray]:
-    try:
-        archive = zipfile.ZipFile(io.BytesIO(data))
-        members = {info.filename: info for info in archive.infolist()}
-    except (zipfile.BadZipFile, ValueError) as exc:
-        raise InvalidInput(f"the features payload is not an .npz archive: {exc}") from exc
-    if set(members) != {f"{name}.npy" for name in ARRAYS}:
-        raise InvalidInput(
-            f"the features payload must hold exactly the arrays {list(ARRAYS)}; "
-            f"got {sorted(members)}"
-        )
-    arrays = {}
-    for name in ARRAYS:
-        info = members[f"{name}.npy"]
-        if info.file_size > limits[name]:
+    with NpzReader(data, "the features payload") as archive:
+        if set(archive.members) != {f"{name}.npy" for name in ARRAYS}:
             raise InvalidInput(
-                f"array '{name}' inflates to {info.file_size} bytes; at most {limits[name]} fit "
-                "this atlas's features"
+                f"the features payload must hold exactly the arrays {list(ARRAYS)}; "
+                f"got {sorted(archive.members)}"
             )
-        try:
-            with archive.open(info) as member:
-                arrays[name] = np.lib.format.read_array(
-                    io.BytesIO(member.read(limits[name] + 1)), allow_pickle=False
-                )
-        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
-            raise InvalidInput(
-                f"array '{name}' of the features payload is unreadable: {exc}"
-            ) from exc
-    return arrays
+        return {name: archive.read(name, limits[name]) for name in ARRAYS}
 
 
 def _signature_of(array: np.ndarray) -> FeatureSignature:

@@ -17,6 +17,7 @@ from service.atlas.catalog import AtlasService
 from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
+from service.fleet.atlas_repair import clean_unfinished_restores
 from service.jobs.queue import Queue
 from service.ml import weights
 from service.ml.pipeline import FeaturePipeline
@@ -67,6 +68,7 @@ class Runtime:
             preset = self._pipeline.preset if self._pipeline else self.settings.preset()
             log.info("loading model preset %r (%s, %s)", preset.name, preset.local, preset.backbone)
             assert self.sessions is not None
+            clean_unfinished_restores(self.settings, self.sessions)  # a restore killed midway
             pipeline = self._pipeline or FeaturePipeline(preset, *self.settings.pipeline_options())
             service = AtlasService(self.settings, self.sessions, pipeline)
             service.frames.enqueue = lambda job_id: self.queue.enqueue(job_id)

@@ -43,6 +43,9 @@ def _seed_torch_home() -> Path:
 
 os.environ["TORCH_HOME"] = str(_seed_torch_home())
 os.environ["LOOPNET_OFFLINE"] = "1"  # never reach for the network in tests
+# Starlette's TestClient sends "Host: testserver"; the service answers only to the hosts it is
+# told (tests/api/test_host_and_origin.py sets its own list)
+os.environ.setdefault("LOOPNET_ALLOWED_HOSTS", "testserver")
 
 
 @pytest.fixture(scope="session")

@@ -41,6 +41,28 @@ def service_env(data_dir: Path, **extra: str) -> dict[str, str]:
 @contextmanager
 def serving(env: dict[str, str], *, wait: bool = True, timeout: float = 120) -> Iterator[str]:
     """Run ``loopnet serve``; yields its URL (once ready, unless ``wait`` is false)."""
+    with served_process(env, wait=wait, timeout=timeout) as (url, _):
+        yield url
+
+
+def peak_rss_bytes(pid: int) -> int:
+    """The process's peak resident memory since it started or :func:`reset_peak_rss`."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError("no VmHWM in /proc: not Linux?")
+
+
+def reset_peak_rss(pid: int) -> None:
+    """Start the process's peak resident memory again from now (Linux >= 4.0)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
+@contextmanager
+def served_process(
+    env: dict[str, str], *, wait: bool = True, timeout: float = 120
+) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """:func:`serving`, yielding the server process too."""
     url = f"http://127.0.0.1:{env['LOOPNET_PORT']}"
     # a file, not a pipe: nobody reads the log while the server runs, and a full pipe (a few
     # hundred requests' log lines) blocks the server
@@ -61,7 +83,7 @@ def serving(env: dict[str, str], *, wait: bool = True, timeout: float = 120) -> 
                     raise AssertionError(f"the server exited: {log.read()[-4000:]}")
                 assert time.monotonic() < deadline, f"server not ready in {timeout} s"
                 time.sleep(0.3)
-            yield url
+            yield url, server
         finally:
             server.send_signal(signal.SIGTERM)
             try:

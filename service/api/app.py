@@ -9,10 +9,11 @@ import anyio.to_thread
 from fastapi import FastAPI
 
 from service import __version__
-from service.api import metrics
+from service.api import metrics, slashes
 from service.api.docs import install_offline_docs
 from service.api.errors import install_error_handlers
 from service.api.guard import RequestGuard
+from service.api.host_guard import HostOriginGuard
 from service.api.request_log import RequestLogMiddleware
 from service.api.routes import (
     atlases,
@@ -26,6 +27,7 @@ from service.api.routes import (
     queries,
     snapshots,
 )
+from service.api.security_headers import SecurityHeaders
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
 from service.console.router import install as install_console
@@ -90,8 +92,13 @@ def create_app(
     )
     for router in (module.router for module in routers):
         app.include_router(router, prefix="/v1")
-    metrics.install(app, runtime)
+    metrics.install(app)
     install_console(app)
+    slashes.install(app.router)
+    # outermost last: the log sees every answer, every answer gets the security headers, and
+    # a foreign Host or origin is refused before authentication and the body
+    app.add_middleware(HostOriginGuard, settings=runtime.settings)
+    app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestLogMiddleware, log_format=runtime.settings.log_format)
     return app
 

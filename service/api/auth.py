@@ -47,6 +47,16 @@ def client_address(request: Request) -> str | None:
     return request.client.host if request.client else None
 
 
+def key_holder(request: Request) -> Principal | None:
+    """The caller of an open route (probes, public metrics) if it shows a valid key (or the API
+    is open): who may read atlas names and errors there; None for anyone else."""
+    authenticator: Authenticator | None = getattr(request.app.state, "authenticator", None)
+    if authenticator is None:
+        return None
+    token = presented_token(request.headers.get("authorization"), request.headers.get("x-api-key"))
+    return authenticator.identify(token, client_address(request))
+
+
 def require(role: Role, *, unscoped: bool = False) -> Callable[..., Principal]:
     """A dependency admitting keys of ``role`` or above (on the route's atlas, if it has one;
     with ``unscoped``, only keys for every atlas)."""

@@ -23,9 +23,11 @@ from service.errors import (
     NotFound,
     NotReady,
     Overloaded,
+    RequestTimeout,
     RequestTooLarge,
     TooManyFailures,
     Unauthorized,
+    UnknownHost,
     WeightsUnavailable,
 )
 
@@ -56,6 +58,8 @@ STATUS_OF: list[tuple[type[LoopNetError], int]] = [
     (NotReady, 503),
     (Overloaded, 503),
     (WeightsUnavailable, 503),
+    (UnknownHost, 400),
+    (RequestTimeout, 408),
 ]
 
 

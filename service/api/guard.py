@@ -7,7 +7,10 @@ a key check in a dependency comes after the upload. This pure ASGI middleware ru
    after too many failures from the address) is answered before a byte of the body is read;
 2. a declared ``Content-Length`` over the route's limit is answered 413 at once;
 3. the body is counted as it arrives, and the moment it passes the limit (chunked uploads
-   declare no length) the answer is 413 and the app sees the client as gone.
+   declare no length) the answer is 413 and the app sees the client as gone;
+4. a body whose next part does not arrive within ``LOOPNET_BODY_TIMEOUT_SECONDS`` is
+   answered 408 and the app sees the client as gone (a slow sender holds no worker thread
+   and no connection for long).
 
 The caller found in step 1 is left in the ASGI scope for the role dependencies
 (:mod:`service.api.auth`), which add the role and atlas checks (403).
@@ -17,13 +20,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import anyio
 import anyio.to_thread
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.auth import PRINCIPAL_KEY, presented_token
 from service.api.errors import error_response
 from service.config import Settings
-from service.errors import LoopNetError, RequestTooLarge
+from service.errors import LoopNetError, RequestTimeout, RequestTooLarge
 from service.fleet.keys import Authenticator
 
 OPEN_PATHS = frozenset(
@@ -80,29 +84,46 @@ class RequestGuard:
         if declared.isdigit() and int(declared) > limit:
             await error_response(_too_large(limit))(scope, receive, send)
             return
-        await self.app(scope, *_bounded(receive, send, scope, limit))
+        timeout = self.settings.body_timeout_seconds
+        await self.app(scope, *_bounded(receive, send, scope, limit, timeout))
 
 
 def _too_large(limit: int) -> RequestTooLarge:
     return RequestTooLarge(f"the request body is over this route's limit of {limit} bytes")
 
 
-def _bounded(receive: Receive, send: Send, scope: Scope, limit: int) -> tuple[Receive, Send]:
-    """``receive`` and ``send`` for the app: past ``limit`` bytes received, answer 413 (unless
-    the app already began its answer), tell the app the client left, and drop what it sends."""
-    state: dict[str, Any] = {"received": 0, "refused": False, "started": False}
+def _bounded(
+    receive: Receive, send: Send, scope: Scope, limit: int, timeout: float
+) -> tuple[Receive, Send]:
+    """``receive`` and ``send`` for the app: past ``limit`` bytes received, or no part of an
+    unfinished body for ``timeout`` seconds, answer 413 or 408 (unless the app already began
+    its answer), tell the app the client left, and drop what it sends."""
+    state: dict[str, Any] = {"received": 0, "refused": False, "started": False, "done": False}
+
+    async def refuse(error: LoopNetError) -> Message:
+        state["refused"] = True
+        if not state["started"]:
+            answer = error_response(error)
+            answer.headers["Connection"] = "close"  # the rest of the body is never read
+            await answer(scope, _no_body, send)
+        return {"type": "http.disconnect"}
 
     async def bounded_receive() -> Message:
         if state["refused"]:
             return {"type": "http.disconnect"}
-        message = await receive()
+        if state["done"]:  # after the body, the app waits for a disconnect: no time-out
+            return await receive()
+        with anyio.move_on_after(timeout) as waited:
+            message = await receive()
+        if waited.cancelled_caught:
+            return await refuse(
+                RequestTimeout(f"no part of the request body arrived for {timeout:g} s")
+            )
         if message["type"] == "http.request":
             state["received"] += len(message.get("body", b""))
+            state["done"] = not message.get("more_body", False)
             if state["received"] > limit:
-                state["refused"] = True
-                if not state["started"]:
-                    await error_response(_too_large(limit))(scope, _no_body, send)
-                return {"type": "http.disconnect"}
+                return await refuse(_too_large(limit))
         return message
 
     async def guarded_send(message: Message) -> None:

@@ -4,6 +4,11 @@ Besides the histograms the code observes as it runs (``service.metrics``), a col
 scrape time what this process holds: the inference gate, each loaded atlas's index and how far
 it lags the database's change feed, and the jobs table (shared by every process; each replica
 reports the same job figures).
+
+Public metrics (``LOOPNET_METRICS_PUBLIC``, the default) name no atlas to a caller without a
+key: the index figures then come as totals over the atlases (frames summed, lag the largest)
+without the ``atlas`` label; a caller showing a valid key (any caller while the API is open;
+an operator where metrics need a key) gets them per atlas, for the atlases its key may use.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from service.api.auth import (
     bearer,
     client_address,
     get_authenticator,
+    key_holder,
 )
 from service.fleet.keys import Principal, Role
 from service.jobs.stats import job_figures
@@ -36,10 +42,12 @@ RECENT_JOBS = 1000  # finished jobs whose durations the histogram covers
 
 
 class RuntimeCollector(Collector):
-    """Gauges and counters read from a :class:`Runtime` at each scrape."""
+    """Gauges and counters read from a :class:`Runtime` at each scrape; index figures per atlas
+    that ``viewer`` may use, or (``viewer`` None) as totals that name no atlas."""
 
-    def __init__(self, runtime: Runtime) -> None:
+    def __init__(self, runtime: Runtime, viewer: Principal | None) -> None:
         self.runtime = runtime
+        self.viewer = viewer
 
     def collect(self) -> Iterator[Any]:
         runtime = self.runtime
@@ -50,19 +58,7 @@ class RuntimeCollector(Collector):
             return
         service = runtime.service
         yield from _gate(service.inference.stats())
-        size = GaugeMetricFamily(
-            "loopnet_index_frames", "Frames in this process's index of the atlas.", labels=["atlas"]
-        )
-        behind = GaugeMetricFamily(
-            "loopnet_change_feed_revisions_behind",
-            "Atlas revisions the database is ahead of this process's index.",
-            labels=["atlas"],
-        )
-        for served in service.served_indexes():
-            size.add_metric([served.atlas], float(served.frames))
-            behind.add_metric([served.atlas], float(served.revisions_behind))
-        yield size
-        yield behind
+        yield from self._indexes(service.served_indexes())
         age = GaugeMetricFamily(
             "loopnet_change_feed_sync_age_seconds",
             "Seconds since this process last caught up with the change feed.",
@@ -79,6 +75,33 @@ class RuntimeCollector(Collector):
             jobs.add_metric([kind, status], float(count))
         yield jobs
         yield _job_durations(figures.durations)
+
+    def _indexes(self, served: Sequence[Any]) -> Iterator[Any]:
+        viewer = self.viewer
+        if viewer is not None:
+            served = [one for one in served if viewer.may_use(one.atlas)]
+        labels = ["atlas"] if viewer is not None else []
+        count = GaugeMetricFamily("loopnet_atlases_served", "Atlases this process serves.")
+        count.add_metric([], float(len(served)))
+        size = GaugeMetricFamily(
+            "loopnet_index_frames",
+            "Frames in this process's index of the atlas (without a key: of all atlases).",
+            labels=labels,
+        )
+        behind = GaugeMetricFamily(
+            "loopnet_change_feed_revisions_behind",
+            "Atlas revisions the database is ahead of this process's index (without a key: the "
+            "largest over the atlases).",
+            labels=labels,
+        )
+        if viewer is not None:
+            for one in served:
+                size.add_metric([one.atlas], float(one.frames))
+                behind.add_metric([one.atlas], float(one.revisions_behind))
+        else:
+            size.add_metric([], float(sum(one.frames for one in served)))
+            behind.add_metric([], float(max((one.revisions_behind for one in served), default=0)))
+        yield from (count, size, behind)
 
 
 def _gate(stats: Any) -> Iterator[Any]:
@@ -126,16 +149,18 @@ def metrics_access(
     request: Request,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
     api_key: Annotated[str | None, Depends(api_key_header)],
-) -> None:
-    """Open unless ``LOOPNET_METRICS_PUBLIC=false``; then an operator key is needed."""
+) -> Principal | None:
+    """Open unless ``LOOPNET_METRICS_PUBLIC=false``; then an operator key is needed. Returns
+    the caller whose atlases may be named (None: name none)."""
     runtime: Runtime = request.app.state.runtime
-    if not runtime.settings.metrics_public:
-        authenticator = get_authenticator(request)
-        principal: Principal | None = request.scope.get(PRINCIPAL_KEY)
-        if principal is None:  # an app without the guard
-            token = credentials.credentials if credentials is not None else api_key
-            principal = authenticator.authenticate(token, client_address(request))
-        authenticator.authorize(principal, Role.operator, None)
+    if runtime.settings.metrics_public:
+        return key_holder(request)
+    authenticator = get_authenticator(request)
+    principal: Principal | None = request.scope.get(PRINCIPAL_KEY)
+    if principal is None:  # an app without the guard
+        token = credentials.credentials if credentials is not None else api_key
+        principal = authenticator.authenticate(token, client_address(request))
+    return authenticator.authorize(principal, Role.operator, None)
 
 
 @router.get(
@@ -144,14 +169,15 @@ def metrics_access(
     responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},
     summary="Prometheus metrics of this process",
 )
-def metrics(request: Request, _: Annotated[None, Depends(metrics_access)]) -> Response:
-    registry: CollectorRegistry = request.app.state.metrics_registry
+def metrics(
+    request: Request, viewer: Annotated[Principal | None, Depends(metrics_access)]
+) -> Response:
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(RuntimeCollector(request.app.state.runtime, viewer))
     body = generate_latest(REGISTRY) + generate_latest(registry)
     return Response(body, media_type=CONTENT_TYPE_LATEST)
 
 
-def install(app: Any, runtime: Runtime) -> None:
-    """Serve ``/metrics`` for ``runtime`` on ``app``."""
-    app.state.metrics_registry = CollectorRegistry(auto_describe=False)
-    app.state.metrics_registry.register(RuntimeCollector(runtime))
+def install(app: Any) -> None:
+    """Serve ``/metrics`` (of ``app.state.runtime``) on ``app``."""
     app.include_router(router)

@@ -4,7 +4,9 @@ Each request gets an id: the caller's ``X-Request-ID`` when it is a sane token, 
 one; the response echoes it in ``X-Request-ID`` so a robot's report can be found in the log.
 The line (logger ``loopnet.access``) is a JSON object by default (``LOOPNET_LOG_FORMAT=json``)
 with method, route template, path, status, duration, atlas, robot and request id; ``text``
-gives the same fields as one plain line.
+gives the same fields as one plain line of ``key=value`` pairs, where a value that is not a
+plain printable token (the decoded path may hold a newline: ``%0A``) is written as a JSON
+string, so no request can forge a line or a field.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.fleet.keys import Role
-from service.metrics import REQUEST_SECONDS
+from service.metrics import REQUEST_SECONDS, method_label
 
 log = logging.getLogger("loopnet.access")
 REQUEST_ID_HEADER = "X-Request-ID"
@@ -136,7 +138,9 @@ class RequestLogMiddleware:
         finally:
             seconds = time.perf_counter() - start
             route = route_template(scope)
-            REQUEST_SECONDS.labels(scope["method"], route, str(status)).observe(seconds)
+            REQUEST_SECONDS.labels(method_label(scope["method"]), route, str(status)).observe(
+                seconds
+            )
             self._log(scope, route, status, seconds, request_id)
 
     def _log(self, scope: Scope, route: str, status: int, seconds: float, request_id: str) -> None:
@@ -154,4 +158,14 @@ class RequestLogMiddleware:
         if self.log_format == "json":
             log.info(json.dumps(fields))
         else:
-            log.info(" ".join(f"{k}={v}" for k, v in fields.items() if v is not None))
+            log.info(" ".join(f"{k}={text_value(v)}" for k, v in fields.items() if v is not None))
+
+
+_PLAIN_TOKEN = re.compile(r"^[!#-<>-~]+$")  # printable ASCII but space, '"' and '='
+
+
+def text_value(value: object) -> str:
+    """A field's value in the text format: as is when it is a plain printable token, else a
+    JSON string (control characters, spaces, quotes, '=' and non-ASCII escaped)."""
+    text = str(value)
+    return text if _PLAIN_TOKEN.match(text) else json.dumps(text)

@@ -241,7 +241,9 @@ class ReadyOut(BaseModel):
     local_extractor: str | None = None
     unavailable_atlases: dict[str, str] = Field(
         default_factory=dict,
-        description="Atlases that cannot be loaded, with why; they answer 503, the others serve.",
+        description="Atlases that cannot be loaded, with why; they answer 503, the others serve. "
+        "Listed only to callers showing a valid key (the atlases it may use; anyone while the "
+        "API is open); `detail` says how many to every caller.",
     )
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from typing import TypeVar
 
 from fastapi import UploadFile
@@ -36,3 +37,7 @@ def parse_json_field(name: str, raw: str | None, model: type[Model]) -> Model | 
             f"{'.'.join(str(p) for p in e['loc']) or name}: {e['msg']}" for e in exc.errors()
         )
         raise InvalidInput(f"field '{name}' is invalid: {problems}") from exc
+    except ValueError as exc:  # an integer beyond Python's integer-conversion limit
+        raise InvalidInput(
+            f"field '{name}' holds a number of more than {sys.get_int_max_str_digits()} digits"
+        ) from exc

@@ -23,9 +23,10 @@ from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.jobs.milestones import calibration_due
 from service.metrics import observe_stages
+from service.ml.decode_memory import DecodeBudget
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics, Pose
-from service.ml.images import decode_image
+from service.ml.images import decode_frame, in_upload_pixels
 from service.ml.pipeline import FeaturePipeline
 from service.ml.thumbnails import make_thumbnail
 from service.storage import repository as repo
@@ -69,6 +70,10 @@ class FrameIngest:
         self.pipeline = pipeline
         self.states = states
         self.inference = inference
+        # every decode of the process holds its peak memory from this budget
+        self.decode_budget = DecodeBudget(
+            settings.decode_memory_bytes, settings.inference_wait_seconds
+        )
         # hands a job id to the queue (set by the process that has one); without it, or when
         # the queue is down, a milestone's job waits queued for a worker's sweep
         self.enqueue: Callable[[int], None] | None = None
@@ -89,17 +94,23 @@ class FrameIngest:
     ) -> tuple[FrameFeatures, float, np.ndarray]:
         """Decode and run the CNNs in one of the gate's slots; returns the features (with their
         thumbnail unless ``thumbnail`` is False: a query makes one only if a loop closes), the
-        decode time in ms and the decoded frame. Raises Overloaded when every slot is busy
-        and the queue is full."""
+        decode time in ms and the decoded frame (shrunk when the upload is much larger than the
+        networks use; the features are in the upload's pixels all the same). Raises Overloaded
+        when every slot is busy and the queue is full, or the decode memory budget stays full."""
         with self.inference.slot():
             start = time.perf_counter()
-            rgb = decode_image(image_bytes, self.settings.image_limits)
+            frame = decode_frame(
+                image_bytes,
+                self.settings.image_limits,
+                working_side=self.pipeline.working_side,
+                budget=self.decode_budget,
+            )
             decode_ms = (time.perf_counter() - start) * 1000.0
-            features = self.pipeline.extract(rgb)
+            features = in_upload_pixels(self.pipeline.extract(frame.rgb), frame)
             if thumbnail:
-                features.thumbnail = make_thumbnail(rgb)
+                features.thumbnail = make_thumbnail(frame.rgb)
         observe_stages({"decode": decode_ms, **features.timings_ms})
-        return features, decode_ms, rgb
+        return features, decode_ms, frame.rgb
 
     def ingest_frame(self, *, atlas_name: str, fields: FrameFields, image_bytes: bytes) -> Frame:
         """Store a frame, its features and its embedding; nothing is written if any step fails."""

@@ -5,13 +5,14 @@ snapshot."""
 from __future__ import annotations
 
 import io
-import zipfile
+from pathlib import Path
 
 import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.errors import InvalidInput
+from service.npz_reader import NpzReader
 from service.storage.models import Frame, FrameThumbnail, LoopClosureThumbnail
 
 SNAPSHOT_MEMBER = "thumbnails.npz"
@@ -45,22 +46,34 @@ def export_member(session: Session, atlas_id: int) -> bytes:
     return out.getvalue()
 
 
-def restore_member(session: Session, data: bytes | None, frame_id_map: dict[int, int]) -> int:
-    """Add an archive's thumbnails under the restored frame ids (an archive written before
-    thumbnails has none: its frames show the placeholder). Returns how many were added."""
-    if data is None:
+def restore_member(
+    session: Session,
+    path: Path | None,
+    frame_id_map: dict[int, int],
+    folder: Path,
+    max_bytes: int,
+) -> int:
+    """Add the thumbnails of an archive's member at ``path`` under the restored frame ids (an
+    archive written before thumbnails has none: its frames show the placeholder); the JPEGs,
+    at most ``max_bytes`` of them, are inflated into ``folder`` and read one at a time. Returns
+    how many were added."""
+    if path is None:
         return 0
-    try:
-        arrays = np.load(io.BytesIO(data), allow_pickle=False)
-        frame_ids, offsets = arrays["frame_ids"], arrays["offsets"]
-        blob = arrays["data"].tobytes()
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
-        raise InvalidInput(f"the snapshot's {SNAPSHOT_MEMBER} is not readable: {exc}") from exc
+    with NpzReader(path, f"the snapshot's {SNAPSHOT_MEMBER}") as npz:
+        if npz.arrays != {"frame_ids", "offsets", "data"}:
+            raise InvalidInput(
+                f"the snapshot's {SNAPSHOT_MEMBER} does not hold the expected arrays"
+            )
+        frames = len(frame_id_map)  # one thumbnail a frame at most: 8 bytes an id, an offset
+        frame_ids = npz.read("frame_ids", 8 * frames)
+        offsets = npz.read("offsets", 8 * (frames + 1))
+        blob = npz.extract("data", folder / "thumbnails-data.npy", max_bytes)
     if (
         frame_ids.dtype.kind != "i"
         or offsets.dtype.kind != "i"
         or frame_ids.ndim != 1
         or offsets.shape != (len(frame_ids) + 1,)
+        or blob.ndim != 1
         or (len(offsets) and (offsets[0] != 0 or offsets[-1] != len(blob)))
         or np.any(np.diff(offsets) < 0)
     ):
@@ -68,7 +81,7 @@ def restore_member(session: Session, data: bytes | None, frame_id_map: dict[int,
     added = 0
     for i, old_id in enumerate(frame_ids.tolist()):
         if old_id in frame_id_map:
-            jpeg = blob[int(offsets[i]) : int(offsets[i + 1])]
+            jpeg = blob[int(offsets[i]) : int(offsets[i + 1])].tobytes()
             session.add(FrameThumbnail(frame_id=frame_id_map[old_id], jpeg=jpeg))
             added += 1
     return added

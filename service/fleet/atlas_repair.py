@@ -5,6 +5,7 @@ its model versions. No CNN is loaded, so a broken deployment is repaired in seco
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from sqlalchemy import select
@@ -14,11 +15,13 @@ from service.atlas import change_feed
 from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.errors import InvalidInput
-from service.fleet.snapshot_restore import RESTORING_PREFIX
+from service.fleet.snapshot_restore import ABANDONED_AFTER, RESTORING_PREFIX
 from service.index import AtlasIndex
 from service.storage import repository as repo
 from service.storage.db import transaction
-from service.storage.models import Atlas
+from service.storage.models import Atlas, utcnow
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,34 @@ def unfinished_restores(sessions: sessionmaker[Session]) -> list[str]:
     with sessions() as session:
         query = select(Atlas.name).where(Atlas.name.startswith(RESTORING_PREFIX))
         return list(session.scalars(query))
+
+
+def clean_unfinished_restores(settings: Settings, sessions: sessionmaker[Session]) -> list[str]:
+    """At start-up: delete the hidden atlases of restores silent for ``ABANDONED_AFTER`` (their
+    process was killed: a running restore marks its atlas alive at every write) and log the
+    others (another process may be restoring now; ``loopnet atlas delete NAME`` removes one).
+    Returns the names deleted."""
+    with sessions() as session:
+        hidden = session.execute(
+            select(Atlas.name, Atlas.created_at).where(Atlas.name.startswith(RESTORING_PREFIX))
+        ).all()
+    deleted = []
+    for name, alive_at in hidden:
+        silent = utcnow() - alive_at
+        if silent < ABANDONED_AFTER:
+            log.warning(
+                "snapshot restore %s was active %s ago: another process may be restoring it; "
+                "if not, `loopnet atlas delete %s` removes it (as does a start %s later)",
+                name,
+                silent,
+                name,
+                ABANDONED_AFTER,
+            )
+            continue
+        delete_atlas(settings, sessions, name)
+        log.warning("deleted %s, left by a snapshot restore that was killed", name)
+        deleted.append(name)
+    return deleted
 
 
 def delete_atlas(settings: Settings, sessions: sessionmaker[Session], name: str) -> None:

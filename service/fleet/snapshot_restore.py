@@ -1,20 +1,28 @@
 """Restoring an atlas snapshot (the archive :mod:`service.fleet.snapshots` writes) as a new atlas.
 
-A restore reads the archive within size limits (:mod:`service.fleet.snapshot_archive`), refuses
-an unknown format version, an unknown schema revision or features of another signature than the
-restoring service extracts, and validates every row, array, weights and calibration file
-(:mod:`service.fleet.snapshot_rows`) before it writes anything. It then writes in short
-transactions under a hidden name, renamed in the last one; a failure deletes what was written.
-Frames get new ids; the index is rebuilt from the archived features with the active heads
-and calibration (cheap: no CNN), so a FAISS file from elsewhere is never parsed.
+A restore reads the archive within size limits (:mod:`service.fleet.snapshot_archive`), its
+members streamed to a temporary folder (``TMPDIR``: it needs about the archive's size plus the
+inflated features there), refuses an unknown format version, an unknown schema revision or
+features of another signature than the restoring service extracts, and validates every row,
+array, weights and calibration file (:mod:`service.fleet.snapshot_rows`) before it writes
+anything. It then writes in short transactions under a hidden name, renamed in the last one; a
+failure deletes what was written. Each transaction also marks the hidden atlas as alive
+(its ``created_at``, set to the restore's time at the end), so that a process starting after
+a restore was killed (SIGKILL, power loss) can tell an abandoned one from a running one:
+:func:`service.fleet.atlas_repair.clean_unfinished_restores` deletes those silent for
+:data:`ABANDONED_AFTER` and reports the others. Frames get new ids; the index is rebuilt from
+the archived features with the active heads and calibration (cheap: no CNN), so a FAISS file
+from elsewhere is never parsed.
 """
 
 from __future__ import annotations
 
 import logging
 import shutil
+import tempfile
 import uuid
 from collections.abc import Iterable
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +38,20 @@ from service.errors import Conflict, InvalidInput
 from service.fleet.snapshot_archive import known_revisions, read_archive
 from service.fleet.snapshot_rows import DecodedSnapshot, FrameRow, decode_snapshot
 from service.index import AtlasIndex
+from service.ml.features import as_stored
 from service.ml.pipeline import embed_vectors
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.feature_store import global_vector_bytes
-from service.storage.models import Atlas, Frame, FrameFeatureRow, LoopClosure, ModelVersion, Submap
+from service.storage.models import (
+    Atlas,
+    Frame,
+    FrameFeatureRow,
+    LoopClosure,
+    ModelVersion,
+    Submap,
+    utcnow,
+)
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +62,10 @@ EMBED_CHUNK = 4096  # frames embedded at once
 # Restores in progress are atlases under a name the API refuses, so no request can address
 # them and listings skip them; the last transaction gives them their real name.
 RESTORING_PREFIX = ".restoring-"
+# A hidden atlas not marked alive for this long belongs to a restore that was killed: every
+# write transaction marks it, and the longest step between two (the index build) takes
+# minutes at the atlas sizes export archives hold.
+ABANDONED_AFTER = timedelta(minutes=15)
 
 
 def restore_atlas(
@@ -55,8 +76,19 @@ def restore_atlas(
     Everything is read, decoded and validated first, with no database lock held; the rows are
     then written in short batches under a hidden name, and a failure deletes what was written.
     """
+    with tempfile.TemporaryDirectory(prefix="loopnet-restore-") as folder:
+        return _restore(settings, sessions, path, name, Path(folder))
+
+
+def _restore(
+    settings: Settings,
+    sessions: sessionmaker[Session],
+    path: Path,
+    name: str | None,
+    folder: Path,
+) -> str:
     limits = settings.snapshot_limits
-    archive = read_archive(path, limits)
+    archive = read_archive(path, limits, folder)
     if archive.manifest.schema_revision not in known_revisions():
         raise InvalidInput(
             f"the snapshot was written at schema revision {archive.manifest.schema_revision!r}, "
@@ -74,7 +106,7 @@ def restore_atlas(
     with sessions() as session:
         if session.scalar(select(Atlas.id).where(Atlas.name == name)) is not None:
             raise Conflict(f"atlas '{name}' already exists")
-    snapshot = decode_snapshot(archive, limits, expected.dims)
+    snapshot = decode_snapshot(archive, limits, expected.dims, folder)
     if not expected.matches(snapshot.atlas.feature_signature):
         raise InvalidInput("the snapshot's atlas.json disagrees with its manifest's features")
     vectors = _embeddings(snapshot)
@@ -83,13 +115,21 @@ def restore_atlas(
     try:
         atlas_id, submap_map = _write_atlas(settings, sessions, snapshot)
         frame_map = _write_frames(sessions, atlas_id, snapshot, submap_map)
+        with transaction(sessions) as session:
+            _mark_alive(session, atlas_id)  # the index build is the longest step
         _write_files(settings, atlas_id, snapshot, vectors, submap_map, frame_map, written)
         with transaction(sessions) as session:
             _write_loop_closures(session, atlas_id, snapshot, submap_map, frame_map)
             thumbnails.restore_member(
-                session, archive.members.get(thumbnails.SNAPSHOT_MEMBER), frame_map
+                session,
+                archive.files.get(thumbnails.SNAPSHOT_MEMBER),
+                frame_map,
+                folder,
+                limits.max_total_bytes,
             )
-            session.execute(update(Atlas).where(Atlas.id == atlas_id).values(name=name))
+            session.execute(
+                update(Atlas).where(Atlas.id == atlas_id).values(name=name, created_at=utcnow())
+            )
     except BaseException as exc:
         _undo(settings, sessions, atlas_id, written)
         if isinstance(exc, IntegrityError):  # a concurrent create took the name meanwhile
@@ -104,18 +144,20 @@ def _heads_inputs(
     """The active heads' inputs of frames ``start:stop``: the stored vectors, or the
     calibrated branches of the stored descriptors."""
     features, calibration = snapshot.features, snapshot.active.calibration
+    # R rounded as the store keeps it, so the restored embedding is the stored frame's
+    global_vectors = as_stored(features.global_vectors[start:stop])
     if calibration is None:
-        return features.local_vectors[start:stop], features.global_vectors[start:stop]
+        return np.array(features.local_vectors[start:stop]), global_vectors  # writable copies
     offsets = features.offsets
     descriptors = [
         features.descriptors[offsets[i] : offsets[i + 1]].astype(np.float32)
         for i in range(start, min(stop, len(features.frame_ids)))
     ]
     scores = [
-        features.scores[offsets[i] : offsets[i + 1]]
+        np.array(features.scores[offsets[i] : offsets[i + 1]])
         for i in range(start, min(stop, len(features.frame_ids)))
     ]
-    return calibration.branch_vectors(descriptors, scores, features.global_vectors[start:stop])
+    return calibration.branch_vectors(descriptors, scores, global_vectors)
 
 
 def _embeddings(snapshot: DecodedSnapshot) -> np.ndarray:
@@ -210,6 +252,7 @@ def _write_frames(
     for batch in _batches(snapshot):
         frames = [snapshot.frames[i] for i in batch]
         with transaction(sessions) as session:
+            _mark_alive(session, atlas_id)
             new_ids = session.scalars(
                 insert(Frame).returning(Frame.id, sort_by_parameter_order=True),
                 [
@@ -254,11 +297,11 @@ def _write_files(
     active version's index under the new frame ids; each file is listed in ``written`` before
     it is written."""
     for version in snapshot.versions:
-        if version.calibration_bytes is not None:
+        if version.calibration_file is not None:
             path = models_store.calibration_file(settings.models_dir, atlas_id, version.row.version)
             written.append(path)
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(version.calibration_bytes)
+            shutil.copyfile(version.calibration_file, path)
         if version.row.weights is None:
             continue
         heads = version.heads
@@ -273,6 +316,11 @@ def _write_files(
     target = models_store.index_file(settings.index_dir, atlas_id, snapshot.active.row.version)
     written.append(target)
     index.save(target)
+
+
+def _mark_alive(session: Session, atlas_id: int) -> None:
+    """Say the restore of hidden atlas ``atlas_id`` is still running (see ABANDONED_AFTER)."""
+    session.execute(update(Atlas).where(Atlas.id == atlas_id).values(created_at=utcnow()))
 
 
 def _write_loop_closures(

@@ -2,19 +2,22 @@
 
 Every row is checked with the rules the API applies to what it stores (names and robot ids,
 finite numbers, unit-quaternion poses, positive focal lengths, the retraining bounds of a
-heads configuration), every reference between rows must resolve, the features must be plain
-numeric arrays of the shapes the rows announce (:mod:`service.fleet.snapshot_features`), weights must
-load into heads of their row's configuration, and a calibration must load (no pickle, bounded
-inflation) and turn the atlas's features into its heads' inputs. Whatever fails is an :class:`InvalidInput`
-naming the member and line, so a restore answers 422 and writes nothing.
+heads configuration and, as a retraining job's parameters are, its fit to the atlas's features),
+every reference between rows must resolve, no row file may hold more rows than the manifest
+counts (each is read a line at a time), the features must be plain numeric arrays of the shapes
+the rows announce (:mod:`service.fleet.snapshot_features`), weights must load into heads of
+their row's configuration, and a calibration must load (no pickle, bounded inflation) and turn
+the atlas's features into its heads' inputs. Whatever fails is an :class:`InvalidInput` naming
+the member and line, so a restore answers 422 and writes nothing.
 """
 
 from __future__ import annotations
 
-import io
 import zipfile
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime
+from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
@@ -36,6 +39,7 @@ from service.fleet.snapshot_features import MAX_DIM, Features, decode_features
 from service.ml.calibration import Calibration
 from service.ml.geometry import Intrinsics, Pose
 from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.training import TrainingConfig
 
 NAME = NAME_PATTERN.pattern  # the API's pattern for atlases, submaps, robots
 
@@ -156,11 +160,17 @@ class LoopClosureRow(_Row):
 RowT = TypeVar("RowT", bound=BaseModel)
 
 
-def _parse_lines(member: str, data: bytes, model: type[RowT]) -> list[RowT]:
-    rows = []
-    for number, line in enumerate(data.splitlines(), 1):
+def _parse_lines(member: str, lines: Iterable[bytes], model: type[RowT], most: int) -> list[RowT]:
+    """The rows of a JSON-lines member, refused past ``most`` (the manifest's count) before
+    the next line is parsed."""
+    rows: list[RowT] = []
+    for number, line in enumerate(lines, 1):
         if not line.strip():
             continue
+        if len(rows) == most:
+            raise InvalidInput(
+                f"the snapshot's {member} holds more rows than its manifest counts ({most})"
+            )
         try:
             rows.append(model.model_validate_json(line))
         except ValidationError as exc:
@@ -175,7 +185,7 @@ class Version:
     row: ModelVersionRow
     heads: LoopNetHeads
     calibration: Calibration | None = None
-    calibration_bytes: bytes | None = None  # the member as archived, written back verbatim
+    calibration_file: Path | None = None  # the member as archived, copied back verbatim
 
 
 @dataclass
@@ -193,10 +203,10 @@ def _heads_config(row: HeadsRow) -> HeadsConfig:
     return HeadsConfig(**row.model_dump())
 
 
-def _load_weights(name: str, data: bytes, config: HeadsRow) -> LoopNetHeads:
+def _load_weights(name: str, path: Path, config: HeadsRow) -> LoopNetHeads:
     """Heads from an archived weights file whose configuration must equal its row's."""
     try:
-        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        payload = torch.load(path, map_location="cpu", weights_only=True)
         stored = HeadsRow.model_validate(payload["config"], strict=False)
         labels = payload["class_labels"]
         if stored != config:
@@ -213,18 +223,18 @@ def _load_weights(name: str, data: bytes, config: HeadsRow) -> LoopNetHeads:
 
 
 def _load_calibration(
-    name: str, data: bytes, limits: ArchiveLimits, features: Features, heads: HeadsRow
+    name: str, path: Path, limits: ArchiveLimits, features: Features, heads: HeadsRow
 ) -> Calibration:
     """A calibration member that loads without pickles, inflates within the limits and maps
     the atlas's stored features onto the heads' input sizes with finite numbers."""
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as zipped:
+        with zipfile.ZipFile(path) as zipped:
             inflated = sum(info.file_size for info in zipped.infolist())
         if inflated > limits.max_member_bytes:
             raise InvalidInput(
                 f"the snapshot's {name} inflates beyond LOOPNET_SNAPSHOT_MAX_MEMBER_BYTES"
             )
-        calibration = Calibration.load(io.BytesIO(data))
+        calibration = Calibration.load(path)
         probe_local, probe_global = calibration.branch_vectors(
             [np.ones((1, features.descriptor_dim), np.float32)],
             [np.ones(1, np.float32)],
@@ -242,11 +252,25 @@ def _load_calibration(
     return calibration
 
 
+def _check_fits(version: int, heads: HeadsRow) -> None:
+    """A version's heads must fit its inputs as a retraining job's parameters must
+    (:meth:`TrainingConfig.check_fits`): an embedding no wider than the fused input."""
+    try:
+        TrainingConfig(embed_dim=heads.embed_dim).check_fits(
+            HeadsConfig(heads.local_dim, heads.global_dim, heads.alpha, heads.hidden_dim)
+        )
+    except ValueError as exc:
+        raise InvalidInput(f"the snapshot's model version {version}: {exc}") from exc
+
+
 def _versions(
     archive: Archive, features: Features, limits: ArchiveLimits
 ) -> tuple[list[Version], Version]:
     rows = _parse_lines(
-        "model_versions.jsonl", archive.members["model_versions.jsonl"], ModelVersionRow
+        "model_versions.jsonl",
+        archive.lines("model_versions.jsonl"),
+        ModelVersionRow,
+        archive.manifest.counts.model_versions,
     )
     numbers = [r.version for r in rows]
     if len(set(numbers)) != len(numbers):
@@ -258,11 +282,11 @@ def _versions(
             f"active_model_version ({archive.manifest.active_model_version})"
         )
     referenced = {r.weights for r in rows if r.weights is not None}
-    archived = {name for name in archive.members if WEIGHTS_MEMBER.match(name)}
+    archived = {name for name in archive.files if WEIGHTS_MEMBER.match(name)}
     if referenced != archived:
         raise InvalidInput("the snapshot's weights files do not match its model versions")
     calibrations = {r.calibration_file for r in rows if r.calibration_file is not None}
-    if calibrations != {name for name in archive.members if CALIBRATION_MEMBER.match(name)}:
+    if calibrations != {name for name in archive.files if CALIBRATION_MEMBER.match(name)}:
         raise InvalidInput("the snapshot's calibration files do not match its model versions")
     versions = []
     for row in rows:
@@ -279,7 +303,7 @@ def _versions(
                 )
             calibration = _load_calibration(
                 row.calibration_file,
-                archive.members[row.calibration_file],
+                archive.files[row.calibration_file],
                 limits,
                 features,
                 heads_row,
@@ -291,6 +315,7 @@ def _versions(
             raise InvalidInput(
                 f"the snapshot's model version {row.version} does not fit its features' sizes"
             )
+        _check_fits(row.version, heads_row)
         if row.weights is None:
             if row.config.trained:
                 raise InvalidInput(f"the snapshot's trained version {row.version} has no weights")
@@ -298,27 +323,43 @@ def _versions(
         else:
             if row.weights != weights_member(row.version):
                 raise InvalidInput(f"the snapshot's version {row.version} names other weights")
-            heads = _load_weights(row.weights, archive.members[row.weights], heads_row)
-        calibration_bytes = (
-            archive.members[row.calibration_file] if row.calibration_file is not None else None
+            heads = _load_weights(row.weights, archive.files[row.weights], heads_row)
+        calibration_file = (
+            archive.files[row.calibration_file] if row.calibration_file is not None else None
         )
-        versions.append(Version(row, heads, calibration, calibration_bytes))
+        versions.append(Version(row, heads, calibration, calibration_file))
     return versions, next(v for v in versions if v.row.is_active)
 
 
 def decode_snapshot(
-    archive: Archive, limits: ArchiveLimits, feature_dims: tuple[int, int]
+    archive: Archive, limits: ArchiveLimits, feature_dims: tuple[int, int], folder: Path
 ) -> DecodedSnapshot:
     """Every row, array and weights file of ``archive``, validated and cross-checked;
-    ``feature_dims``: the descriptor and global sizes the restoring service extracts."""
-    members = archive.members
+    ``feature_dims``: the descriptor and global sizes the restoring service extracts; the
+    features are inflated into ``folder``."""
+    counts_row = archive.manifest.counts
+    features = decode_features(archive.files["features.npz"], limits, folder, counts_row.frames)
+    if (features.descriptor_dim, features.global_dim) != feature_dims:
+        raise InvalidInput(
+            f"the snapshot's features have sizes {features.descriptor_dim} and "
+            f"{features.global_dim}, this service's {feature_dims[0]} and {feature_dims[1]}"
+        )
     try:
-        atlas = AtlasRow.model_validate_json(members["atlas.json"])
+        atlas = AtlasRow.model_validate_json(archive.read("atlas.json"))
     except ValidationError as exc:
         raise InvalidInput(f"the snapshot's atlas.json: {first_error(exc)}") from exc
-    submaps = _parse_lines("submaps.jsonl", members["submaps.jsonl"], SubmapRow)
-    frames = _parse_lines("frames.jsonl", members["frames.jsonl"], FrameRow)
-    closures = _parse_lines("loop_closures.jsonl", members["loop_closures.jsonl"], LoopClosureRow)
+    submaps = _parse_lines(
+        "submaps.jsonl", archive.lines("submaps.jsonl"), SubmapRow, counts_row.submaps
+    )
+    frames = _parse_lines(
+        "frames.jsonl", archive.lines("frames.jsonl"), FrameRow, counts_row.frames
+    )
+    closures = _parse_lines(
+        "loop_closures.jsonl",
+        archive.lines("loop_closures.jsonl"),
+        LoopClosureRow,
+        counts_row.loop_closures,
+    )
     submap_ids = [s.id for s in submaps]
     if len(set(submap_ids)) != len(submap_ids) or len({s.name for s in submaps}) != len(submaps):
         raise InvalidInput("the snapshot's submaps.jsonl repeats a submap")
@@ -344,12 +385,6 @@ def decode_snapshot(
             raise InvalidInput(
                 f"the snapshot's loop_closures.jsonl, line {number}: unknown frame or submap"
             )
-    features = decode_features(members["features.npz"], limits)
-    if (features.descriptor_dim, features.global_dim) != feature_dims:
-        raise InvalidInput(
-            f"the snapshot's features have sizes {features.descriptor_dim} and "
-            f"{features.global_dim}, this service's {feature_dims[0]} and {feature_dims[1]}"
-        )
     ids = features.frame_ids.tolist()
     if len(set(ids)) != len(ids) or set(ids) != set(by_id):
         raise InvalidInput("the snapshot's features.npz does not hold each frame exactly once")
@@ -364,7 +399,6 @@ def decode_snapshot(
             raise InvalidInput(
                 f"the snapshot's version {version.row.version} classifies unknown submaps"
             )
-    counts_row = archive.manifest.counts
     if (counts_row.submaps, counts_row.frames, counts_row.model_versions) != (
         len(submaps),
         len(frames),

@@ -9,7 +9,8 @@ import numpy as np
 
 @dataclass
 class LocalFeatures:
-    """Keypoints of one image, in the pixel coordinates of the *decoded* image.
+    """Keypoints of one image, in the pixel coordinates of the image as uploaded (a large
+    upload the service decoded shrunk has them mapped back).
 
     Attributes:
         keypoints: ``N x 2`` float32, (x, y).
@@ -54,7 +55,7 @@ class FrameFeatures:
         local: the extractor's keypoints (kept for geometric verification).
         local_vector: ``D`` float32, the aggregated, L2-normalised local descriptor.
         global_vector: ``C`` float32, the L2-normalised backbone vector.
-        image_size: (width, height) of the decoded image.
+        image_size: (width, height) of the image as uploaded.
         thumbnail: a small JPEG of the image (service/ml/thumbnails.py), when made at decode.
     """
 

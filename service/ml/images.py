@@ -2,13 +2,25 @@
 
 Decoding is strict: an empty, truncated or non-image upload and one over the byte or pixel
 limits raise a typed error before any pixel buffer is allocated for the full image.
+
+:func:`decode_frame` (what the service decodes uploads with) also bounds the memory a decode
+takes: the networks resize every frame to a few hundred pixels a side, so a frame whose long
+side exceeds :data:`REDUCE_MARGIN` times that working side is decoded at a reduced scale where
+the format allows it (JPEG: scaled in the DCT, Pillow's ``draft``) and shrunk by an integer box
+filter right after decoding otherwise; its estimated peak is reserved from a
+:class:`~service.ml.decode_memory.DecodeBudget` shared by every decode of the process. The
+frame's keypoints are then mapped back to the uploaded image's pixels (:func:`in_upload_pixels`),
+so sizes, poses and intrinsics keep meaning the image the robot sent.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import struct
 import warnings
+from contextlib import nullcontext
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -16,6 +28,8 @@ import torch.nn.functional as F
 from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
 
 from service.errors import ImageTooLarge, InvalidImage
+from service.ml.decode_memory import DecodeBudget, decode_bytes
+from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.image_limits import ImageLimits
 
 ImageFile.LOAD_TRUNCATED_IMAGES = False
@@ -23,16 +37,103 @@ ImageFile.LOAD_TRUNCATED_IMAGES = False
 SUPPORTED_FORMATS = ("JPEG", "MPO", "PNG", "WEBP")
 # What Pillow raises on corrupt input, at open and at decode (found by fuzzing the decoder).
 CORRUPT_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)
+# A frame keeps at least this many times the networks' working side: the box-filtered shrink
+# then leaves the networks' own antialiased resize nearly all of its work.
+REDUCE_MARGIN = 4
+SHRINKABLE_MODES = frozenset({"L", "LA", "PA", "I", "F", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr"})
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """An uploaded image as the networks get it: ``rgb`` (``H x W x 3`` uint8, perhaps shrunk)
+    and ``size``, the (width, height) of the image as uploaded (EXIF orientation applied)."""
+
+    rgb: np.ndarray
+    size: tuple[int, int]
+
+    @property
+    def shrunk(self) -> bool:
+        return self.size != (self.rgb.shape[1], self.rgb.shape[0])
 
 
 def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
-    """Decode JPEG/PNG/WebP bytes into an ``H x W x 3`` uint8 RGB array, EXIF orientation applied.
+    """Decode JPEG/PNG/WebP bytes into an ``H x W x 3`` uint8 RGB array at full size, EXIF
+    orientation applied.
 
     Raises:
         InvalidImage: empty, not an image, an unsupported format, or truncated.
         ImageTooLarge: more bytes or pixels than ``limits`` allow.
     """
-    limits = limits or ImageLimits()
+    return decode_frame(data, limits).rgb
+
+
+def decode_frame(
+    data: bytes,
+    limits: ImageLimits | None = None,
+    *,
+    working_side: int | None = None,
+    budget: DecodeBudget | None = None,
+) -> DecodedFrame:
+    """:func:`decode_image`, kept at most about ``REDUCE_MARGIN x working_side`` on its long
+    side (None: full size) while holding its estimated peak from ``budget``.
+
+    Raises, besides :func:`decode_image`'s errors: ImageTooLarge when the decode alone would
+    exceed the budget, Overloaded when the budget stays full for its wait.
+    """
+    image = _open_checked(data, limits or ImageLimits())
+    width, height = image.size
+    keep = REDUCE_MARGIN * working_side if working_side else None
+    if keep and image.format in ("JPEG", "MPO") and max(width, height) > 2 * keep:
+        ratio = keep / max(width, height)
+        try:  # scaled in the DCT, to the smallest size still at least ``keep``
+            image.draft(image.mode, (max(1, round(width * ratio)), max(1, round(height * ratio))))
+        except CORRUPT_IMAGE_ERRORS as exc:
+            raise InvalidImage(f"the image could not be decoded (corrupt): {exc}") from exc
+    factor = max(1, max(image.size) // keep) if keep else 1
+    convert_first = factor > 1 and image.mode not in SHRINKABLE_MODES
+    decoded_pixels = image.size[0] * image.size[1]
+    working_pixels = -(-image.size[0] // factor) * -(-image.size[1] // factor)
+    estimate = decode_bytes(
+        image.format or "", image.mode, decoded_pixels, convert_first, working_pixels
+    )
+    with budget.reserve(estimate) if budget is not None else nullcontext():
+        try:
+            image.load()
+            if factor > 1:
+                image = (image.convert("RGB") if convert_first else image).reduce(factor)
+            shrunk_size = image.size
+            ImageOps.exif_transpose(image, in_place=True)
+            if image.mode != "RGB":
+                image = image.convert("RGB")
+            array = np.asarray(image, dtype=np.uint8)
+            turned = image.size != shrunk_size
+            del image  # Pillow's copy goes before the array's
+            rgb = array.copy()
+        except CORRUPT_IMAGE_ERRORS as exc:
+            raise InvalidImage(
+                f"the image could not be decoded (truncated or corrupt): {exc}"
+            ) from exc
+    return DecodedFrame(rgb, (height, width) if turned else (width, height))
+
+
+def in_upload_pixels(features: FrameFeatures, frame: DecodedFrame) -> FrameFeatures:
+    """``features`` extracted from ``frame.rgb`` with keypoints and image size in the pixels of
+    the image as uploaded (a shrunk frame's pixel centres mapped back)."""
+    if not frame.shrunk:
+        return features
+    height, width = frame.rgb.shape[:2]
+    scale = np.array([frame.size[0] / width, frame.size[1] / height], np.float32)
+    local = features.local
+    keypoints = ((local.keypoints + 0.5) * scale - 0.5).astype(np.float32)
+    return dataclasses.replace(
+        features,
+        local=LocalFeatures(keypoints, local.descriptors, local.scores),
+        image_size=frame.size,
+    )
+
+
+def _open_checked(data: bytes, limits: ImageLimits) -> Image.Image:
+    """The opened (not yet decoded) image, its format, size and shape checked."""
     too_many_pixels = f"the image has more pixels than {limits.pixels_setting}={limits.max_pixels}"
     if not data:
         raise InvalidImage("the uploaded file is empty")
@@ -56,12 +157,7 @@ def decode_image(data: bytes, limits: ImageLimits | None = None) -> np.ndarray:
     if width * height > limits.max_pixels:
         raise ImageTooLarge(f"{too_many_pixels}: it is {width}x{height} = {width * height} pixels")
     _check_shape(width, height, limits)
-    try:
-        image.load()
-        rgb = (ImageOps.exif_transpose(image) or image).convert("RGB")
-    except CORRUPT_IMAGE_ERRORS as exc:
-        raise InvalidImage(f"the image could not be decoded (truncated or corrupt): {exc}") from exc
-    return np.asarray(rgb, dtype=np.uint8).copy()
+    return image
 
 
 def _check_shape(width: int, height: int, limits: ImageLimits) -> None:

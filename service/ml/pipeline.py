@@ -71,6 +71,12 @@ class FeaturePipeline:
         """What the stored features mean; an atlas only accepts features of its signature."""
         return self.preset.signature
 
+    @property
+    def working_side(self) -> int:
+        """The longest side either network resizes a frame to: a larger upload is decoded
+        shrunk (see :func:`service.ml.images.decode_frame`)."""
+        return max(self.preset.local.long_side, self.preset.backbone.input_size)
+
     def heads_config(self) -> HeadsConfig:
         """The untrained heads' config for this pipeline's features and preset."""
         return HeadsConfig(

@@ -92,3 +92,15 @@ def test_a_server_error_keeps_the_shape_and_hides_the_cause(tmp_path: Path, pipe
             session.execute(text("DROP TABLE loop_closures"))
         body = assert_error_shape(client.get("/v1/atlases/campus/loop-closures"), 500)
         assert body["error"] == "Internal" and "loop_closures" not in body["detail"]
+
+
+def test_the_trailing_slash_redirect_is_relative(client: TestClient) -> None:
+    """Issue 24: the 307 to the path without its trailing slash echoed the Host header."""
+    answer = client.get(
+        "/v1/atlases/?limit=3", headers={"Host": "localhost:8000"}, follow_redirects=False
+    )
+    assert answer.status_code == 307
+    assert answer.headers["location"] == "/v1/atlases?limit=3"
+    followed = client.get("/v1/atlases/")
+    assert followed.status_code == 200 and followed.url.path == "/v1/atlases"
+    assert client.get("/docs/", follow_redirects=False).headers["location"] == "/docs"

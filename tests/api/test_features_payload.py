@@ -17,7 +17,7 @@ from service.ml.images import decode_image
 from service.ml.presets import FeatureSignature
 from tests.api.helpers import add_frame, create_atlas, stored_state
 from tests.conftest import gardens_point_day_night
-from tests.reliability.hostile import renamed_member
+from tests.reliability.hostile import renamed_member, zip_tampering
 
 
 def features_of(pipeline, image: bytes) -> FrameFeatures:  # type: ignore[no-untyped-def]
@@ -150,7 +150,7 @@ MALFORMED: dict[str, tuple[Callable[[bytes, FeatureSignature, FrameFeatures], by
     ),
     "pickled object": (
         lambda p, s, f: _rewrite(p, scores=np.array([{"a": 1}], dtype=object)),
-        "unreadable",
+        "has type object",
     ),
     "keypoints with three columns": (
         lambda p, s, f: _rewrite(
@@ -160,7 +160,24 @@ MALFORMED: dict[str, tuple[Callable[[bytes, FeatureSignature, FrameFeatures], by
     ),
     "member without .npy": (lambda p, s, f: renamed_member(p, "scores.npy", "scores"), "exactly"),
     "image size": (lambda p, s, f: _rewrite(p, image_size=np.array([0, 10])), "image_size"),
-    "zip bomb": (lambda p, s, f: _zip_bomb(p), "inflates to"),
+    "zip bomb": (lambda p, s, f: _zip_bomb(p), "no valid header"),
+    # issue 24: each was a 500 (a memory error, RuntimeError, NotImplementedError, zlib.error)
+    "declared shape of 10^12": (
+        lambda p, s, f: zip_tampering(p, "descriptors")["declares 10^12 values"],
+        "declares shape (1000000000000,)",
+    ),
+    "encrypted member": (
+        lambda p, s, f: zip_tampering(p, "keypoints")["encrypted member"],
+        "is encrypted",
+    ),
+    "compression method 6": (
+        lambda p, s, f: zip_tampering(p, "scores")["compression method 6"],
+        "compression method 6",
+    ),
+    "corrupt deflate data": (
+        lambda p, s, f: zip_tampering(p, "descriptors")["corrupt deflate"],
+        "while decompressing data",
+    ),
 }
 
 
@@ -199,3 +216,27 @@ def test_unknown_atlas_and_oversized_payload(client: TestClient, pipeline) -> No
     create_atlas(client)
     limit = client.app.state.runtime.service.settings.max_upload_bytes  # type: ignore[attr-defined]
     assert post_frame(client, payload + b"\0" * limit).status_code == 413
+
+
+def test_hostile_archives_are_refused_in_bounded_memory(
+    pipeline,  # type: ignore[no-untyped-def]
+    night_features: FrameFeatures,
+) -> None:
+    """Every array of the payload, tampered every way: a 422 (InvalidInput), and the decoder's
+    allocations stay far below the array's declared size (the payload itself is ~200 KB)."""
+    import tracemalloc
+
+    from service.errors import InvalidInput
+    from service.features_payload import decode_features
+
+    good = encode_features(night_features, pipeline.signature)
+    for name in ("signature", "image_size", "keypoints", "descriptors", "scores", "global_vector"):
+        for how, bad in zip_tampering(good, name).items():
+            tracemalloc.start()
+            try:
+                with pytest.raises(InvalidInput):
+                    decode_features(bad, pipeline.signature, max_image_pixels=10**7)
+                peak = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+            assert peak < 8 * 1024 * 1024, (name, how, peak)

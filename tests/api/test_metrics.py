@@ -130,3 +130,85 @@ def test_metrics_can_require_an_operator_key(tmp_path, pipeline) -> None:  # typ
         answer = client.get("/metrics", headers={"X-API-Key": operator})
         assert answer.status_code == 200
         assert "loopnet_ready" in answer.text
+
+
+def series(client: TestClient, **headers: str) -> set[tuple[str, frozenset[tuple[str, str]]]]:
+    response = client.get("/metrics", headers=headers)
+    assert response.status_code == 200
+    return {
+        (s.name, frozenset(s.labels.items()))
+        for family in text_string_to_metric_families(response.text)
+        for s in family.samples
+    }
+
+
+def test_series_stay_bounded_whatever_clients_send(client: TestClient) -> None:
+    """Issue 24: a method label took any token a client sent, so 300 keyless requests with
+    2,000-character methods grew /metrics to 11.5 MB. Random methods, paths, robot ids and atlas
+    names now only ever land on the closed sets of labels."""
+    import random
+    import string
+
+    from service.metrics import HTTP_METHODS, OTHER_METHOD
+
+    create_atlas(client)
+    rng = random.Random(24)
+
+    def token(length: int) -> str:
+        return "".join(rng.choices(string.ascii_letters + string.digits + "-_", k=length))
+
+    def hostile_requests(count: int) -> None:
+        for _ in range(count):
+            method = rng.choice(["GET", "POST", "DELETE", token(rng.randint(1, 2000)).upper()])
+            path = rng.choice(
+                [
+                    f"/v1/atlases/{token(rng.randint(1, 60))}",
+                    f"/v1/atlases/campus/frames?robot_id={token(40)}",
+                    f"/v1/atlases/{token(12)}/query?robot={token(30)}",
+                    f"/{token(rng.randint(1, 300))}/{token(8)}",
+                    f"/console/{token(20)}.js",
+                    f"/v1/atlases/{token(10)}/",
+                ]
+            )
+            client.request(method, path)
+
+    hostile_requests(150)
+    first = series(client)
+    hostile_requests(300)
+    second = series(client)
+    templates = set(client.app.openapi()["paths"]) | {"unmatched", "/console", "/metrics"}
+    http = [labels for name, labels in second if name.startswith("loopnet_http_request")]
+    for labels in map(dict, http):
+        assert labels["method"] in HTTP_METHODS | {OTHER_METHOD}, labels["method"][:40]
+        assert labels["route"] in templates or labels["route"].startswith("/"), labels
+        assert len(labels["route"]) < 100
+    # the second, larger batch met only series the first had made (or a handful more)
+    assert len(second - first) <= 30, sorted(second - first)[:5]
+    assert len(client.get("/metrics").content) < 300_000
+
+
+def test_public_metrics_name_no_atlas_without_a_key(tmp_path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    """Issue 24: public /metrics listed every atlas name to anyone; without a key it now gives
+    the index figures as totals, per atlas only to a caller showing a valid key."""
+    settings = make_settings(tmp_path / "data", auth="required")
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+        sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+        admin = issue(sessions, name="a", role=Role.admin, atlases=[]).token
+        key = {"X-API-Key": admin}
+        for name in ("secret-site", "other-site"):
+            assert client.post("/v1/atlases", json={"name": name}, headers=key).status_code == 201
+        client.app.state.runtime.service.load_all()  # type: ignore[attr-defined]
+        anonymous = client.get("/metrics")
+        assert anonymous.status_code == 200
+        assert "secret-site" not in anonymous.text and "other-site" not in anonymous.text
+        samples = {(n, labels) for n, labels in series(client)}
+        assert ("loopnet_index_frames", frozenset()) in samples
+        assert ("loopnet_atlases_served", frozenset()) in samples
+        wrong = client.get("/metrics", headers={"X-API-Key": "lnk_wrong"})
+        assert "secret-site" not in wrong.text
+        named = series(client, **key)
+        assert ("loopnet_index_frames", frozenset({("atlas", "secret-site")})) in named
+        robot = issue(sessions, name="r", role=Role.robot, atlases=["other-site"]).token
+        scoped = client.get("/metrics", headers={"X-API-Key": robot}).text
+        assert 'atlas="other-site"' in scoped and "secret-site" not in scoped

@@ -80,3 +80,22 @@ def test_plain_text_setting(tmp_path, pipeline, access_lines: io.StringIO) -> No
     assert "status=404" in line and "atlas=nowhere" in line and "request_id=abc" in line
     with pytest.raises(ValueError):
         json.loads(line)
+
+
+def test_text_lines_cannot_be_forged_through_the_path(
+    tmp_path, pipeline, access_lines: io.StringIO
+) -> None:  # type: ignore[no-untyped-def]
+    """Issue 24: the text format wrote the decoded path raw, so ``%0A`` in a URL started a
+    forged log line; values that are not plain tokens are now written as JSON strings."""
+    settings = make_settings(tmp_path / "data", log_format="text")
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+        access_lines.seek(0)
+        access_lines.truncate()
+        forged = "/v1/atlases/x%0Ats=2020-01-01 method=GET status=200 robot=admin%22%20%3D%1b[31m"
+        assert client.get(forged).status_code == 404
+    (line,) = lines(access_lines)
+    assert line.startswith("ts=") and "\n" not in line and "\x1b" not in line
+    path, end = json.JSONDecoder().raw_decode(line.split(" path=", 1)[1])
+    assert path == '/v1/atlases/x\nts=2020-01-01 method=GET status=200 robot=admin" =\x1b[31m'
+    assert line.split(" path=", 1)[1][end:].startswith(" status=404 ")

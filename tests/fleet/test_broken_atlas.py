@@ -9,6 +9,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
+from service.fleet.keys import Role, issue
 from service.fleet.snapshot_restore import RESTORING_PREFIX
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
@@ -17,11 +18,12 @@ from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 from tests.fleet.snapshot_helpers import deployment_env, loopnet
 
 
-def query(client: TestClient, atlas: str):  # type: ignore[no-untyped-def]
+def query(client: TestClient, atlas: str, **headers: str):  # type: ignore[no-untyped-def]
     return client.post(
         f"/v1/atlases/{atlas}/query",
         data={"k": "1"},
         files={"image": ("q.jpg", gardens_point_day_night(1, "query"))},
+        headers=headers,
     )
 
 
@@ -55,6 +57,15 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
         listing = client.get("/v1/atlases")
         assert listing.status_code == 200
         assert sorted(a["name"] for a in listing.json()) == ["healthy", "restored"]
+        # issue 24: once keys are on, a caller without one learns only how many
+        sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
+        key = {"X-API-Key": issue(sessions, name="ops", role=Role.operator, atlases=[]).token}
+        client.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
+        anonymous = client.get("/v1/ready").json()
+        assert anonymous["unavailable_atlases"] == {} and "restored" not in str(anonymous)
+        assert anonymous["detail"] == "ready; 1 atlas(es) unavailable"
+        keyed = client.get("/v1/ready", headers=key).json()
+        assert list(keyed["unavailable_atlases"]) == ["restored"]
 
     check = loopnet(env, "atlas", "check")
     assert check.returncode == 1
@@ -68,8 +79,8 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
 
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
-        assert client.get("/v1/ready").json()["unavailable_atlases"] == {}
-        answer = query(client, "restored")
+        assert client.get("/v1/ready", headers=key).json()["unavailable_atlases"] == {}
+        answer = query(client, "restored", **key)
         assert answer.status_code == 200, answer.text
         assert answer.json()["model_version"] == 1
 
@@ -96,3 +107,49 @@ def test_an_unfinished_restore_is_reported_and_deleted(tmp_path: Path) -> None:
     assert check.returncode == 1 and ".restoring-abc: UNFINISHED" in check.stdout
     assert loopnet(env, "atlas", "delete", ".restoring-abc").returncode == 0
     assert loopnet(env, "atlas", "check").returncode == 0
+
+
+def test_a_restore_killed_midway_is_cleaned_at_start_up(
+    exported, tmp_path: Path, pipeline, caplog
+) -> None:  # type: ignore[no-untyped-def]
+    """Issue 24: a SIGKILL during a restore left its hidden atlas, frames and files for good.
+    A process starting later deletes a hidden atlas its restore stopped marking alive (here:
+    marked 20 minutes ago, as a killed restore leaves it) and only reports a recent one
+    (another process may be restoring it now)."""
+    from datetime import timedelta
+
+    from sqlalchemy import func, select, update
+
+    from service.fleet.snapshot_restore import restore_atlas
+    from service.storage.models import Atlas, Frame, utcnow
+
+    data_dir = tmp_path / "deployment"
+    settings = make_settings(data_dir)
+    upgrade_database(settings.resolved_database_url)
+    sessions = make_session_factory(make_engine(settings.resolved_database_url))
+    for name in ("killed", "running"):  # two restores as a SIGKILL leaves them: all but renamed
+        restore_atlas(settings, sessions, exported[0], name=name)
+    with transaction(sessions) as session:
+        for name, silent in (("killed", 20), ("running", 1)):
+            session.execute(
+                update(Atlas)
+                .where(Atlas.name == name)
+                .values(
+                    name=RESTORING_PREFIX + name, created_at=utcnow() - timedelta(minutes=silent)
+                )
+            )
+        killed_id = session.scalar(
+            select(Atlas.id).where(Atlas.name == RESTORING_PREFIX + "killed")
+        )
+    killed_files = [p for p in data_dir.rglob("*") if f"atlas-{killed_id}" in p.name]
+    assert killed_files
+    with caplog.at_level("WARNING"), TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+    with sessions() as session:
+        hidden = session.scalars(select(Atlas.name).where(Atlas.name.startswith(RESTORING_PREFIX)))
+        assert list(hidden) == [RESTORING_PREFIX + "running"]
+        frames = session.scalar(select(func.count(Frame.id)))
+    assert frames == 8  # the running restore's; the killed one's went with it
+    assert not any(p.exists() for p in killed_files)
+    assert f"deleted {RESTORING_PREFIX}killed" in caplog.text
+    assert f"{RESTORING_PREFIX}running was active" in caplog.text

@@ -83,6 +83,18 @@ def _huge_embed_dim(rows: list[dict]) -> None:
     rows[0]["config"]["heads"]["embed_dim"] = 150_000
 
 
+def _heads_of_every_version(**values: int) -> Callable[[list[dict]], None]:
+    """Heads configurations within the row bounds (4096) that do not fit the atlas's features
+    (issue 24: each was a 500)."""
+
+    def edit(rows: list[dict]) -> None:
+        for row in rows:
+            if row["weights"] is None:  # trained weights must match their row anyway
+                row["config"]["heads"].update(values)
+
+    return edit
+
+
 def _none_active(rows: list[dict]) -> None:
     for row in rows:
         row["is_active"] = False
@@ -119,6 +131,12 @@ MALFORMED: dict[str, Callable[[dict], None]] = {
     "submap name invalid": jsonl_edit("submaps.jsonl", lambda r: _set(r, 0, name="a b")),
     "model version without weights": jsonl_edit("model_versions.jsonl", _no_weights_key),
     "embed_dim beyond bounds": jsonl_edit("model_versions.jsonl", _huge_embed_dim),
+    "embed_dim 4096 the features cannot fill": jsonl_edit(
+        "model_versions.jsonl", _heads_of_every_version(embed_dim=4096)
+    ),
+    "hidden_dim 4096 with embed_dim 4096": jsonl_edit(
+        "model_versions.jsonl", _heads_of_every_version(hidden_dim=4096, embed_dim=4096)
+    ),
     "no active model version": jsonl_edit("model_versions.jsonl", _none_active),
     "loop closure of an unknown frame": jsonl_edit(
         "loop_closures.jsonl", lambda r: _set(r, 0, frame_id=987654)
@@ -262,16 +280,21 @@ def test_huge_member_is_refused_before_it_is_read(
     data = buffer.getvalue()
     assert len(data) < MiB
     before = files_under(server)
-    tracemalloc.start()
-    try:
-        answer = restore(server, data)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    answer, peak = restore_traced(server, data)
     assert peak < 16 * MiB, f"restore allocated {peak / MiB:.0f} MiB"
     assert answer.status_code == 422, answer.text
     assert "LOOPNET_SNAPSHOT_MAX_MEMBER_BYTES" in answer.json()["detail"]
     assert_nothing_left(server, before)
+
+
+def restore_traced(client: TestClient, archive: bytes):  # type: ignore[no-untyped-def]
+    """The restore's answer, and the most bytes Python held meanwhile (tracemalloc)."""
+    tracemalloc.start()
+    try:
+        answer = restore(client, archive)
+        return answer, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
 class _Zeros:
@@ -321,3 +344,50 @@ def test_restore_decompresses_each_array_once(
     # each array of each npz member (features.npz has nine, thumbnails.npz three) read once
     assert len(opened) == len(set(opened)) == 12, opened
     service.delete_atlas("once")
+
+
+def test_members_within_the_limits_are_streamed_to_disk(
+    exported, server: TestClient, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    """Issue 24: members were read into memory, up to the limits (1 GiB each, 2 GiB in all): a
+    408 KB .tar.gz of zeros raised the server by 794 MB before its 422. Members now go to disk
+    through a bounded buffer: 14 MiB of members within this server's limits (8 MiB a member,
+    16 MiB in all) cost the restore less than one of them."""
+    members = members_of(exported[0])
+    zeros = ("frames.jsonl", "features.npz")
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz", compresslevel=1) as archive:
+        for name in sorted(members.keys() - set(zeros)):
+            info = tarfile.TarInfo(name)
+            info.size = len(members[name])
+            archive.addfile(info, io.BytesIO(members[name]))
+        for name in zeros:
+            info = tarfile.TarInfo(name)
+            info.size = 7 * MiB
+            archive.addfile(info, _Zeros(info.size))  # type: ignore[arg-type]
+    data = buffer.getvalue()
+    assert len(data) < 1024 * 1024
+    before = files_under(server)
+    answer, peak = restore_traced(server, data)
+    assert answer.status_code == 422, answer.text
+    assert "checksum" in answer.json()["detail"]
+    assert peak < 4 * MiB, f"restore allocated {peak / MiB:.1f} MiB"
+    assert_nothing_left(server, before)
+
+
+def test_features_declaring_more_frames_than_the_manifest_are_refused_unread(
+    exported, server: TestClient, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    """The arrays' declared shapes are checked against the manifest before any is inflated."""
+    from tests.reliability.hostile import npy_declaring, replaced_member
+
+    members = members_of(exported[0])
+    members["features.npz"] = replaced_member(
+        members["features.npz"], "frame_ids.npy", npy_declaring((10**9,), "<i8")
+    )
+    archive = write_archive(members, tmp_path / "bad.tar")
+    before = files_under(server)
+    answer = restore(server, archive.read_bytes())
+    assert answer.status_code == 422, answer.text
+    assert "holds 1000000000 frames, its manifest 8" in answer.json()["detail"]
+    assert_nothing_left(server, before)

@@ -7,8 +7,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from service.errors import ImageTooLarge, InvalidImage
-from service.ml.images import ImageLimits, decode_image
-from tests.reliability.uploads import broken_images, image_uploads, pixel_bomb, valid_images
+from service.ml.decode_memory import DecodeBudget
+from service.ml.images import ImageLimits, decode_frame, decode_image
+from tests.reliability.uploads import (
+    broken_images,
+    image_uploads,
+    pixel_bomb,
+    small_but_huge_images,
+    valid_images,
+)
 
 LIMITS = ImageLimits(max_bytes=200_000, max_pixels=1_000_000)
 FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -31,6 +38,23 @@ def test_any_bytes_decode_or_raise_a_typed_error(data: bytes) -> None:
         assert str(error)  # a message the client can read
     else:
         assert rgb.dtype == np.uint8 and rgb.shape[2] == 3
+
+
+@FAST
+@given(st.one_of(small_but_huge_images(), broken_images(), image_uploads()))
+def test_the_service_decode_shrinks_or_raises_a_typed_error(data: bytes) -> None:
+    """As the service decodes (working side 256, a budget): a frame at most 8 x 256 a side,
+    its size the upload's, the budget given back."""
+    budget = DecodeBudget(64 * 1024 * 1024, 1.0)
+    try:
+        frame = decode_frame(data, LIMITS, working_side=256, budget=budget)
+    except (InvalidImage, ImageTooLarge) as error:
+        assert str(error)
+    else:
+        assert frame.rgb.dtype == np.uint8 and frame.rgb.shape[2] == 3
+        assert max(frame.rgb.shape[:2]) < 8 * 256
+        assert frame.size[0] >= frame.rgb.shape[1] and frame.size[1] >= frame.rgb.shape[0]
+    assert budget.used == 0
 
 
 def test_pixel_bombs_are_refused_before_decoding() -> None:

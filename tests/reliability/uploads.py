@@ -1,5 +1,7 @@
 """Hypothesis strategies for image uploads: tiny valid images in every mode and format the
-decoder meets, and their broken relatives (truncated, bit-flipped, wrong format, bombs).
+decoder meets, their broken relatives (truncated, bit-flipped, wrong format, bombs), and
+small-but-huge ones (a few kilobytes on the wire, far more pixels than the networks use: the
+decoder shrinks them, within its memory budget).
 
 The valid ones are tiny so that thousands of requests that reach the CNNs fit in minutes (DISK
 resizes every frame to the working long side anyway).
@@ -87,9 +89,33 @@ def pixel_bomb(width: int, height: int) -> bytes:
     return buffer.getvalue()
 
 
+def solid_image(width: int, height: int, mode: str, fmt: str) -> bytes:
+    """One colour in ``mode``, encoded as ``fmt``: kilobytes for millions of pixels."""
+    image = Image.new("RGB", (width, height), (90, 120, 200))
+    image = image.convert(mode, dither=Image.Dither.NONE)
+    buffer = io.BytesIO()
+    image.save(buffer, format=fmt)
+    return buffer.getvalue()
+
+
+@st.composite
+def small_but_huge_images(draw: st.DrawFn, max_pixels: int = 1_000_000) -> bytes:
+    """Solid images of at most ``max_pixels`` whose long side passes the decoder's shrink
+    threshold at the tests' 256 px working side (or comes near it), in every format and in the
+    modes Pillow cannot shrink directly."""
+    fmt = draw(st.sampled_from(FORMATS))
+    allowed = {"JPEG": JPEG_MODES, "WEBP": WEBP_MODES}.get(fmt, PNG_MODES)
+    long = draw(st.sampled_from([1000, 2048, 3000]))  # 1000: just under the threshold
+    lowest = max(16, -(-long // 10))  # the decoder's aspect limit: 10
+    short = draw(st.integers(lowest, max(lowest, min(long, max_pixels // long))))
+    width, height = (long, short) if draw(st.booleans()) else (short, long)
+    return solid_image(width, height, draw(st.sampled_from(allowed)), fmt)
+
+
 def image_uploads() -> st.SearchStrategy[bytes]:
     """Every kind of upload a robot (or an attacker) might send."""
     return st.one_of(
+        small_but_huge_images(),
         valid_images(),
         valid_images(min_side=1, max_side=15),  # below the minimum size
         st.sampled_from([encode_image(2000, 1, "L", "PNG", 0), multi_picture_jpeg()]),

@@ -1,14 +1,20 @@
-"""Liveness and readiness."""
+"""Liveness and readiness.
+
+Readiness is open (probes carry no key), so it says to callers without a key only how many
+atlases are unavailable; their names and errors, and a failed start-up's cause, go to callers
+showing a valid key (or to anyone while the API is open).
+"""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from service.api.auth import client_address, presented_token
+from service.api.auth import key_holder
 from service.api.deps import RuntimeDep
 from service.api.errors import redact
 from service.api.schemas import HealthOut, ReadyOut
+from service.fleet.keys import Principal
 
 router = APIRouter(tags=["health"])
 
@@ -36,11 +42,11 @@ def ready(runtime: RuntimeDep, request: Request) -> ReadyOut | JSONResponse:
             preset=preset.name,
             backbone=preset.backbone.name,
             local_extractor=preset.local.name,
-            unavailable_atlases=unavailable,
+            unavailable_atlases=_visible(unavailable, key_holder(request)),
         )
     if runtime.error:
         detail = "start-up failed (the service log says why)"
-        if _shows_a_key(request):
+        if key_holder(request) is not None:
             detail = f"start-up failed: {redact(runtime.error)}"
     elif not runtime.ready:
         detail = "loading models and indexes"
@@ -50,10 +56,8 @@ def ready(runtime: RuntimeDep, request: Request) -> ReadyOut | JSONResponse:
     return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": "2"})
 
 
-def _shows_a_key(request: Request) -> bool:
-    """Whether the caller may read start-up errors: it shows a valid key, or the API is open."""
-    authenticator = getattr(request.app.state, "authenticator", None)
-    if authenticator is None:
-        return False
-    token = presented_token(request.headers.get("authorization"), request.headers.get("x-api-key"))
-    return authenticator.identify(token, client_address(request)) is not None
+def _visible(unavailable: dict[str, str], viewer: Principal | None) -> dict[str, str]:
+    """The unavailable atlases a caller may see: none without a key, its own atlases with one."""
+    if viewer is None:
+        return {}
+    return {name: why for name, why in unavailable.items() if viewer.may_use(name)}

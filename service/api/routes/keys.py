@@ -1,7 +1,10 @@
 """API keys (admin): create (the token is shown once), list, revoke.
 
 A scoped admin works within its atlases: it creates keys only for them (and at most admin),
-lists and revokes only keys limited to them (others answer as if they did not exist).
+lists and revokes only keys limited to them (others answer as if they did not exist). Keys are
+created over HTTP only by a caller showing an admin key: the first one comes from
+``loopnet keys create`` on the server, so that nobody who merely reaches an open service (a
+web page through a visitor's browser included) can make himself its admin.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from fastapi import APIRouter, status
 from service.api.auth import AdminAccess
 from service.api.deps import RowId, RuntimeDep
 from service.api.schemas import ApiKeyIn, ApiKeyOut, ErrorOut, NewApiKeyOut
-from service.errors import NotReady
+from service.errors import Forbidden, NotReady
 from service.fleet import keys
 from service.fleet.keys import Role
 
@@ -42,8 +45,15 @@ def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
     status_code=status.HTTP_201_CREATED,
     responses=NOT_FOUND,
     summary="Create an API key",
+    description="Needs an admin key (403 without one, also while the API is open): the first "
+    "key is created on the server with `loopnet keys create --role admin --name NAME`.",
 )
 def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKeyOut:
+    if caller.key_id is None:
+        raise Forbidden(
+            "keys are created over HTTP only with an admin key; create the first one on the "
+            "server: loopnet keys create --role admin --name NAME"
+        )
     new = keys.issue(
         _sessions(runtime),
         name=body.name,

@@ -7,6 +7,7 @@ export function h(tag, attrs = {}, ...children) {
     if (v === undefined || v === null || v === false) continue;
     if (k.startsWith("on")) el.addEventListener(k.slice(2), v);
     else if (k === "class") el.className = v;
+    else if (k === "style") el.style.cssText = v; // through the CSSOM: the CSP allows no style attributes
     else el.setAttribute(k, v === true ? "" : v);
   }
   for (const child of children.flat()) {

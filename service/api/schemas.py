@@ -10,6 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
+from service.ml.aggregators import AggregatorName
+from service.ml.calibration import CalibrationConfig
 from service.ml.training import TrainingConfig
 
 
@@ -257,11 +259,20 @@ class CalibrateParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    aggregator: Literal["vlad", "mean"] = Field(
-        "vlad", description="How a frame's local descriptors become one vector."
+    aggregator: AggregatorName = Field(
+        CalibrationConfig.aggregator,
+        description="How a frame's local descriptors become one vector.",
     )
-    words: int = Field(64, ge=2, le=1024, description="VLAD vocabulary size.")
-    alpha: float = Field(0.5, ge=0, le=1, description="Weight of the local branch in the fusion.")
+    words: int | None = Field(
+        CalibrationConfig.words,
+        ge=2,
+        le=1024,
+        description="VLAD vocabulary size; null: 16,384 values over the descriptor's length "
+        "(DISK 128 words, XFeat 256), what automatic calibrations and the harness fit.",
+    )
+    alpha: float = Field(
+        CalibrationConfig.alpha, ge=0, le=1, description="Weight of the local branch in the fusion."
+    )
 
 
 class JobIn(BaseModel):

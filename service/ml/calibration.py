@@ -33,8 +33,14 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from service.ml.aggregation import l2_normalize
-from service.ml.aggregators import Aggregator, aggregator_from_state, fit_aggregator
+from service.ml.aggregators import (
+    Aggregator,
+    AggregatorName,
+    aggregator_from_state,
+    fit_aggregator,
+)
 from service.ml.features import LocalFeatures
+from service.ml.fusion import weighted_branches
 from service.ml.heads import HeadsConfig
 from service.ml.impostors import (
     MIN_PAIRS,
@@ -67,7 +73,7 @@ class CalibrationConfig:
         seed: every sample and the k-means start from it (a calibration is reproducible).
     """
 
-    aggregator: str = "vlad"
+    aggregator: AggregatorName = "vlad"
     words: int | None = None
     local: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
     global_: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
@@ -240,7 +246,7 @@ class Calibration:
         """``[a * D_w, (1 - a) * R_w]``, L2-normalised, ``a`` the fusion weight of ``alpha``
         (default: the calibration's) on these branches' spreads."""
         a = self.fusion_alpha if alpha is None else standardised_alpha(alpha, self.spread)
-        return l2_normalize(np.hstack([a * local_branch, (1.0 - a) * global_branch]))
+        return l2_normalize(weighted_branches(local_branch, global_branch, a))
 
     def embed_many(
         self,

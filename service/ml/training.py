@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from service.ml.fusion import weighted_branches
 from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
 from service.ml.impostors import sequence_positions
 
@@ -200,9 +201,7 @@ def pca_init(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, seed: 
     if len(local) > PCA_SAMPLE:
         pick = np.random.default_rng(seed).choice(len(local), PCA_SAMPLE, replace=False)
         local, global_ = local[pick], global_[pick]
-    stacked = torch.from_numpy(
-        np.concatenate([alpha * local, (1 - alpha) * global_], axis=1).astype(np.float32)
-    )
+    stacked = torch.from_numpy(weighted_branches(local, global_, alpha).astype(np.float32))
     mean = stacked.mean(dim=0)
     rows = min(config.fused_dim, *stacked.shape)
     torch.manual_seed(seed)  # svd_lowrank starts from a random subspace

@@ -28,7 +28,7 @@ from service.api.forms import (
     frame_fields,
     intrinsics_from_form,
 )
-from service.api.routes.frames import get_frame
+from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
 from service.api.uploads import read_image_upload
 from service.atlas import reads
@@ -80,7 +80,7 @@ def add_frame_features(
         fields=frame_fields(access, submap, robot_id, timestamp, pose, intrinsics),
         features=read_features(service, atlas, features),
     )
-    return get_frame(atlas, frame.id, service, access)
+    return frame_out(reads.FrameRecord(atlas, submap, frame))
 
 
 @router.post(

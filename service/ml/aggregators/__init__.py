@@ -7,7 +7,7 @@ to a vocabulary learned on the atlas's own stored descriptors).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Literal, Protocol, get_args
 
 import numpy as np
 
@@ -28,7 +28,8 @@ class Aggregator(Protocol):
     def state(self) -> dict[str, np.ndarray]: ...
 
 
-AGGREGATORS = ("mean", "vlad")
+AggregatorName = Literal["vlad", "mean"]
+AGGREGATORS: tuple[AggregatorName, ...] = get_args(AggregatorName)
 
 
 def fit_aggregator(
@@ -57,6 +58,7 @@ def aggregator_from_state(name: str, state: dict[str, np.ndarray]) -> Aggregator
 
 __all__ = [
     "AGGREGATORS",
+    "AggregatorName",
     "Aggregator",
     "MeanAggregator",
     "VladAggregator",

@@ -9,8 +9,7 @@ other name are refused, as is a member whose header declares more bytes than the
 check happens on the header, so a small compressed archive announcing a huge member is
 refused without inflating it. The members within the limits are copied to files in a folder
 the caller owns (a temporary one) through a buffer of :data:`COPY_CHUNK` bytes, hashed on the
-way: a small ``.tar.gz`` of zeros costs disk up to the limits, never memory (it once raised the
-server by 794 MB before its 422). The row files are then read a line at a time, the arrays
+way: a small ``.tar.gz`` of zeros costs disk up to the limits, never memory. The row files are then read a line at a time, the arrays
 memory-mapped (:mod:`service.fleet.snapshot_features`).
 """
 

@@ -57,8 +57,8 @@ class FeaturePipeline:
             else None
         )
         # Side by side only while this is the one frame being extracted: under load every core
-        # already runs a frame, and a second thread per frame only adds hand-offs (8 robots
-        # ingesting: 25.4-26.5 frames/s side by side against 26.9-28.4 one after the other).
+        # already runs a frame, and a second thread per frame only adds hand-offs (measured
+        # with 8 robots ingesting: benchmarks/RESULTS.md).
         self._running = 0
         self._running_lock = threading.Lock()
 

@@ -150,30 +150,6 @@ def revoke_key(session: Session, *, key_id: int, revoker: Principal = OPEN) -> A
     return key
 
 
-def issue(
-    sessions: sessionmaker[Session],
-    *,
-    name: str,
-    role: Role,
-    atlases: list[str],
-    creator: Principal = OPEN,
-) -> NewKey:
-    """Create a key in its own transaction (the API and the CLI call this; the CLI, run on the
-    server itself, creates as :data:`OPEN`)."""
-    with transaction(sessions) as session:
-        return create_key(session, name=name, role=role, atlases=atlases, creator=creator)
-
-
-def listing(sessions: sessionmaker[Session], *, viewer: Principal = OPEN) -> list[ApiKey]:
-    with sessions() as session:
-        return list_keys(session, viewer=viewer)
-
-
-def revoke(sessions: sessionmaker[Session], *, key_id: int, revoker: Principal = OPEN) -> ApiKey:
-    with transaction(sessions) as session:
-        return revoke_key(session, key_id=key_id, revoker=revoker)
-
-
 class Authenticator:
     """Turns a presented token into a :class:`Principal`, or raises 401/403/429 errors."""
 
@@ -268,3 +244,32 @@ class Authenticator:
             )
         else:
             log.info("API keys required (LOOPNET_AUTH=%s)", self.mode)
+
+
+class KeyAdmin:
+    """Creating, listing and revoking API keys, each in one transaction of its own (the API
+    and the CLI call these)."""
+
+    def __init__(self, sessions: sessionmaker[Session]) -> None:
+        self.sessions = sessions
+
+    def issue(
+        self,
+        *,
+        name: str,
+        role: Role,
+        atlases: list[str],
+        creator: Principal = OPEN,
+    ) -> NewKey:
+        """Create a key in its own transaction (the API and the CLI call this; the CLI, run on the
+        server itself, creates as :data:`OPEN`)."""
+        with transaction(self.sessions) as session:
+            return create_key(session, name=name, role=role, atlases=atlases, creator=creator)
+
+    def listing(self, *, viewer: Principal = OPEN) -> list[ApiKey]:
+        with self.sessions() as session:
+            return list_keys(session, viewer=viewer)
+
+    def revoke(self, *, key_id: int, revoker: Principal = OPEN) -> ApiKey:
+        with transaction(self.sessions) as session:
+            return revoke_key(session, key_id=key_id, revoker=revoker)

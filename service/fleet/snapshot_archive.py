@@ -28,6 +28,7 @@ from typing import IO, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.domain.limits import ArchiveLimits
 from service.errors import InvalidInput
 
 FORMAT = "loopnet-atlas-snapshot"
@@ -78,14 +79,6 @@ def head_revision() -> str:
 def known_revisions() -> set[str]:
     """The schema revisions this LoopNet knows (a restore refuses a newer one)."""
     return {s.revision for s in _migrations().walk_revisions()}
-
-
-@dataclass(frozen=True)
-class ArchiveLimits:
-    """Largest member and largest sum of members (uncompressed bytes) a restore reads."""
-
-    max_member_bytes: int
-    max_total_bytes: int
 
 
 class Counts(BaseModel):

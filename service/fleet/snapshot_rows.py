@@ -25,12 +25,12 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.atlas.names import NAME_PATTERN
+from service.domain.limits import ArchiveLimits
 from service.errors import InvalidInput
 from service.fleet.snapshot_archive import (
     CALIBRATION_MEMBER,
     WEIGHTS_MEMBER,
     Archive,
-    ArchiveLimits,
     calibration_member,
     first_error,
     weights_member,

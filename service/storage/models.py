@@ -27,11 +27,6 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
-# Ids are INTEGER primary keys: 32-bit on PostgreSQL, so no row has a larger id (a lookup of
-# one must be refused before it reaches the database, which raises "integer out of range").
-MAX_ROW_ID = 2**31 - 1
-
-
 class UTCDateTime(TypeDecorator[datetime]):
     """Timezone-aware UTC datetimes on every backend (SQLite stores them naive)."""
 

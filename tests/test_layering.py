@@ -194,9 +194,11 @@ def package_edges() -> dict[str, set[str]]:
         me = parts[0]
         for name in runtime_imports(path.read_text(), package_of(path)):
             target = name.split(".")
-            if target[0] == "service" and len(target) > 1 and target[1] != me:
-                if (SERVICE / target[1]).is_dir() or (SERVICE / f"{target[1]}.py").exists():
-                    edges.setdefault(me, set()).add(target[1])
+            inside = target[0] == "service" and len(target) > 1 and target[1] != me
+            if inside and (
+                (SERVICE / target[1]).is_dir() or (SERVICE / f"{target[1]}.py").exists()
+            ):
+                edges.setdefault(me, set()).add(target[1])
     return edges
 
 

@@ -4,15 +4,37 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from datetime import datetime
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
+from service.domain.statuses import (
+    CalibrationState,
+    JobKind,
+    JobStatus,
+    PlaceStatus,
+    Role,
+    literal_of,
+)
 from service.ml.aggregators import AggregatorName
 from service.ml.calibration import CalibrationConfig
 from service.ml.training import TrainingConfig
+
+# The closed sets, inline in the OpenAPI spec (as Literals), defined once in service.domain.
+if TYPE_CHECKING:
+    CalibrationStateValue = str
+    PlaceStatusValue = str
+    JobKindValue = str
+    JobStatusValue = str
+    RoleName = str
+else:
+    CalibrationStateValue = literal_of(CalibrationState)
+    PlaceStatusValue = literal_of(PlaceStatus)
+    JobKindValue = literal_of(JobKind)
+    JobStatusValue = literal_of(JobStatus)
+    RoleName = literal_of(Role)
 
 
 class ErrorOut(BaseModel):
@@ -42,7 +64,7 @@ class AtlasOut(BaseModel):
 
 
 class CalibrationStateOut(BaseModel):
-    state: Literal["uncalibrated", "calibrated"] = Field(
+    state: CalibrationStateValue = Field(
         description="'uncalibrated': the active version embeds with the uncalibrated blend."
     )
     version: int | None = Field(
@@ -195,7 +217,7 @@ class QueryOut(BaseModel):
         "times likelier to pass); null when the model version is not calibrated and the "
         "similarity threshold decided.",
     )
-    status: Literal["loop", "candidate", "new_place"] = Field(
+    status: PlaceStatusValue = Field(
         description="'loop': loop_closure holds and the robot's last consistency_frames "
         "observations agree on one place, or the robot's sequence passed on its own "
         "(sequence.passed); 'candidate': loop_closure holds, not yet consistent; 'new_place': "
@@ -278,7 +300,7 @@ class CalibrateParams(BaseModel):
 class JobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["retrain", "calibrate"] = Field(
+    kind: JobKindValue = Field(
         "retrain",
         description="'retrain': train the heads (on the latest calibration); 'calibrate': fit "
         "the atlas's calibration (local aggregation, branch whitening, calibrated score) on "
@@ -308,7 +330,7 @@ class JobOut(BaseModel):
     id: int
     atlas: str
     kind: str
-    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    status: JobStatusValue
     progress: float = Field(description="0..100")
     message: str
     params: dict[str, Any]
@@ -326,7 +348,7 @@ class ApiKeyIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=128, examples=["husky-1"])
-    role: Literal["robot", "operator", "admin"]
+    role: RoleName
     atlases: list[str] = Field(
         default_factory=list, description="Atlases the key may use; empty: every atlas."
     )

@@ -15,6 +15,7 @@ from service.atlas.change_feed import revisions
 from service.atlas.loop_closures import list_loop_closures
 from service.atlas.model_versions import VersionConfig
 from service.atlas.state import LoadedAtlas
+from service.domain.statuses import CalibrationState
 from service.errors import Conflict
 from service.ml.presets import FeatureSignature
 from service.storage import repository as repo
@@ -42,9 +43,9 @@ def summary_of(session: Session, atlas: Atlas) -> dict[str, Any]:
 def calibration_state(config: VersionConfig) -> dict[str, Any]:
     """Whether the active version is calibrated, by which version's job, on how many frames."""
     if config.calibration is None:
-        return {"state": "uncalibrated", "version": None, "frames_at_fit": None}
+        return {"state": CalibrationState.UNCALIBRATED, "version": None, "frames_at_fit": None}
     return {
-        "state": "calibrated",
+        "state": CalibrationState.CALIBRATED,
         "version": config.calibration.get("version"),
         "frames_at_fit": config.calibration.get("frames_at_fit"),
     }

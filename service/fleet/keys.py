@@ -22,7 +22,6 @@ logged. Failed authentications are logged (never the token) and limited per clie
 
 from __future__ import annotations
 
-import enum
 import hashlib
 import logging
 import secrets
@@ -35,6 +34,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.names import validate_name
 from service.config import Settings
+from service.domain.statuses import Role as Role
 from service.errors import Forbidden, InvalidInput, NotFound, TooManyFailures, Unauthorized
 from service.fleet.failures import FailureLimiter
 from service.storage.db import transaction
@@ -43,12 +43,6 @@ from service.storage.models import ApiKey, Atlas, utcnow
 log = logging.getLogger(__name__)
 
 TOKEN_PREFIX = "lnk_"
-
-
-class Role(enum.IntEnum):
-    robot = 1
-    operator = 2
-    admin = 3
 
 
 def parse_role(name: str) -> Role:

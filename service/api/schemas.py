@@ -11,6 +11,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
 from service.domain.statuses import (
+    AggregatorName,
     CalibrationState,
     JobKind,
     JobStatus,
@@ -18,8 +19,7 @@ from service.domain.statuses import (
     Role,
     literal_of,
 )
-from service.ml.aggregators import AggregatorName
-from service.ml.calibration import CalibrationConfig
+from service.ml.calibration_config import CalibrationConfig
 from service.ml.training import TrainingConfig
 
 # The closed sets, inline in the OpenAPI spec (as Literals), defined once in service.domain.

@@ -6,6 +6,9 @@ from __future__ import annotations
 import enum
 from typing import Any, Literal
 
+# How a frame's local descriptors become one vector (see service.ml.aggregators).
+AggregatorName = Literal["vlad", "mean"]
+
 
 class PlaceStatus(enum.StrEnum):
     """What one observation concluded."""

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.ml.aggregators import AggregatorName
+from service.domain.statuses import AggregatorName
 from service.ml.whitening import WhiteningConfig
 
 if TYPE_CHECKING:

@@ -7,10 +7,11 @@ to a vocabulary learned on the atlas's own stored descriptors).
 
 from __future__ import annotations
 
-from typing import Literal, Protocol, get_args
+from typing import Protocol, get_args
 
 import numpy as np
 
+from service.domain.statuses import AggregatorName
 from service.ml.aggregators.mean import MeanAggregator
 from service.ml.aggregators.vlad import VladAggregator, fit_vocabulary
 
@@ -28,7 +29,6 @@ class Aggregator(Protocol):
     def state(self) -> dict[str, np.ndarray]: ...
 
 
-AggregatorName = Literal["vlad", "mean"]
 AGGREGATORS: tuple[AggregatorName, ...] = get_args(AggregatorName)
 
 

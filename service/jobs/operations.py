@@ -9,7 +9,6 @@ from typing import Any
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.jobs import submit
-from service.jobs.queue import Queue
 from service.jobs.stats import JobFigures, job_figures
 from service.storage.models import Job
 
@@ -17,13 +16,13 @@ from service.storage.models import Job
 class Jobs:
     """The job use cases of one process (:mod:`service.jobs.submit` does the work)."""
 
-    def __init__(self, sessions: sessionmaker[Session], queue: Callable[[], Queue]) -> None:
+    def __init__(self, sessions: sessionmaker[Session], enqueue: Callable[[int], None]) -> None:
         self.sessions = sessions
-        self.queue = queue  # opened on first submit: reads and counts need no queue
+        self.enqueue = enqueue  # hands a job id to the process's queue
 
     def submit(self, atlas: str, kind: str, params: dict[str, Any]) -> Job:
         """Check, record and queue a job (one per atlas at a time)."""
-        return submit.submit_job(self.sessions, self.queue(), atlas=atlas, kind=kind, params=params)
+        return submit.submit_job(self.sessions, self.enqueue, atlas=atlas, kind=kind, params=params)
 
     def list(self, atlas: str) -> list[Job]:
         return submit.list_jobs(self.sessions, atlas=atlas)

@@ -21,9 +21,9 @@ from service.fleet.atlas_repair import clean_unfinished_restores
 from service.fleet.keys import Authenticator, KeyAdmin
 from service.fleet.snapshot_use_case import Snapshots
 from service.jobs.operations import Jobs
-from service.jobs.queue import Queue
 from service.ml import weights
 from service.ml.pipeline import FeaturePipeline
+from service.runtime.queue import Queue
 from service.storage.db import (
     make_engine,
     make_private_dir,
@@ -109,7 +109,7 @@ class Runtime:
     @property
     def jobs(self) -> Jobs:
         """Submitting, reading and cancelling jobs (queue opened on first use)."""
-        return Jobs(self._sessions(), lambda: self.queue)
+        return Jobs(self._sessions(), lambda job_id: self.queue.enqueue(job_id))
 
     @property
     def snapshots(self) -> Snapshots:

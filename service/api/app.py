@@ -24,6 +24,7 @@ from service.api.routes import (
     jobs,
     keys,
     loop_closures,
+    pairs,
     queries,
     snapshots,
 )
@@ -87,6 +88,7 @@ def create_app(
         jobs,
         keys,
         loop_closures,
+        pairs,
         snapshots,
         browse,
     )

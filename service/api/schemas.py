@@ -6,10 +6,11 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
+from service.jobs.adaptation import AdaptConfig
 from service.ml.training import TrainingConfig
 
 
@@ -264,14 +265,24 @@ class CalibrateParams(BaseModel):
     alpha: float = Field(0.5, ge=0, le=1, description="Weight of the local branch in the fusion.")
 
 
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class AdaptParams(AdaptConfig):
+    """Parameters of an adaptation job; every field has a default."""
+
+
+JOB_PARAMS = {"retrain": "params", "calibrate": "calibration", "adapt": "adaptation"}
+
+
 class JobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["retrain", "calibrate"] = Field(
+    kind: Literal["retrain", "calibrate", "adapt"] = Field(
         "retrain",
         description="'retrain': train the heads (on the latest calibration); 'calibrate': fit "
         "the atlas's calibration (local aggregation, branch whitening, calibrated score) on "
-        "its stored features. Each writes and activates a new model version.",
+        "its stored features; 'adapt': learn a whitening from the atlas's revisit pairs "
+        "(verified closures and labelled pairs). Each writes a new model version, activated "
+        "when not worse than the active one.",
     )
     params: RetrainParams = Field(
         default_factory=RetrainParams, description="A retraining's parameters."
@@ -279,17 +290,25 @@ class JobIn(BaseModel):
     calibration: CalibrateParams = Field(
         default_factory=CalibrateParams, description="A calibration's parameters."
     )
+    adaptation: AdaptParams = Field(
+        default_factory=AdaptParams, description="An adaptation's parameters."
+    )
 
     @model_validator(mode="after")
     def _parameters_of_its_kind(self) -> JobIn:
-        other = "params" if self.kind == "calibrate" else "calibration"
-        if other in self.model_fields_set:
-            raise ValueError(f"'{other}' does not apply to a {self.kind} job")
+        for kind, other in JOB_PARAMS.items():
+            if kind != self.kind and other in self.model_fields_set:
+                raise ValueError(f"'{other}' does not apply to a {self.kind} job")
         return self
 
     def job_params(self) -> dict[str, Any]:
         if self.kind == "calibrate":
             return self.calibration.model_dump()
+        if self.kind == "adapt":
+            dumped: dict[str, Any] = TypeAdapter(AdaptParams).dump_python(
+                self.adaptation, mode="json", exclude_defaults=True
+            )
+            return dumped
         return asdict(self.params)
 
 
@@ -344,4 +363,26 @@ class LoopClosureOut(BaseModel):
     similarity: float
     model_version: int
     source: str = Field(description="query or observe")
+    created_at: datetime
+
+
+class PairIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    frame_id: int = Field(ge=1, le=2**31 - 1, description="A frame of the atlas.")
+    other_frame_id: int = Field(
+        ge=1, le=2**31 - 1, description="Another frame of the atlas, of the same place."
+    )
+
+
+class PairOut(BaseModel):
+    id: int
+    frame_id: int = Field(description="The frame that revisits (an observation's new frame).")
+    other_frame_id: int = Field(description="The frame it was matched with.")
+    robot_id: str
+    other_robot_id: str
+    submap: str
+    other_submap: str
+    source: str = Field(description="observe (a verified closure) or operator (labelled)")
+    inliers: int | None = Field(description="RANSAC inliers of a verified closure.")
     created_at: datetime

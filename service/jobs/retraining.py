@@ -28,8 +28,10 @@ from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames, load_model_inputs
+from service.jobs.adaptation import run_adaptation
 from service.jobs.calibration import run_calibration
 from service.ml.active_model import ActiveModel
+from service.ml.adaptation import NoUsefulPairs
 from service.ml.heads import HeadsConfig
 from service.ml.held_out import compare_on_held_out, split_for_job
 from service.ml.retrained_impostors import retrained_impostor_model
@@ -70,7 +72,7 @@ class JobRunner:
             atlas = session.get(Atlas, atlas_id)
             atlas_name = atlas.name if atlas else f"#{atlas_id}"
         log.info("job %d (%s of atlas '%s'): started", job_id, kind, atlas_name)
-        if kind not in ("retrain", "calibrate"):
+        if kind not in ("retrain", "calibrate", "adapt"):
             self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
             log.error("job %d (atlas '%s'): failed, unknown kind %r", job_id, atlas_name, kind)
             return
@@ -78,12 +80,18 @@ class JobRunner:
         try:
             if kind == "calibrate":
                 version = run_calibration(self, job_id, atlas_id, params, files)
+            elif kind == "adapt":
+                version = run_adaptation(self, job_id, atlas_id, params, files)
             else:
                 version = self._retrain(job_id, atlas_id, params, files)
         except TrainingCancelled as exc:
             self._cleanup(files)
             self._finish(job_id, JobStatus.CANCELLED, str(exc))
             log.info("job %d (atlas '%s'): cancelled (%s)", job_id, atlas_name, exc)
+        except NoUsefulPairs as exc:  # refused, nothing changed: the reason is the message
+            self._cleanup(files)
+            self._finish(job_id, JobStatus.FAILED, f"refused: {exc}")
+            log.info("job %d (atlas '%s'): refused (%s)", job_id, atlas_name, exc)
         except Exception as exc:
             log.exception("job %d (atlas '%s'): failed", job_id, atlas_name)
             self._cleanup(files)

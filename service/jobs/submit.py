@@ -16,7 +16,9 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.model_versions import VersionConfig
+from service.atlas.revisit_pairs import pair_frames
 from service.errors import InvalidInput, NotReady
+from service.jobs.adaptation import AdaptConfig
 from service.jobs.calibration import MIN_FRAMES, calibration_config
 from service.jobs.queue import Queue
 from service.ml.training import TrainingConfig
@@ -25,7 +27,7 @@ from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Job, JobStatus
 
-JOB_KINDS = ("retrain", "calibrate")
+JOB_KINDS = ("retrain", "calibrate", "adapt")
 
 
 def check_params(kind: str, params: dict[str, Any]) -> TrainingConfig | None:
@@ -36,6 +38,12 @@ def check_params(kind: str, params: dict[str, Any]) -> TrainingConfig | None:
             calibration_config(params)
         except (TypeError, ValueError) as exc:
             raise InvalidInput(str(exc)) from exc
+        return None
+    if kind == "adapt":
+        try:
+            AdaptConfig(**params)
+        except (TypeError, ValidationError) as exc:
+            raise InvalidInput(f"invalid job parameters: {exc}") from exc
         return None
     if kind != "retrain":
         raise InvalidInput(f"unknown job kind {kind!r}; choose one of {list(JOB_KINDS)}")
@@ -57,8 +65,21 @@ def check_fits(session: Session, config: TrainingConfig, *, atlas_id: int) -> No
         raise InvalidInput(str(exc)) from exc
 
 
-def check_atlas_ready(session: Session, atlas_id: int, atlas: str, kind: str) -> None:
-    """A retraining needs frames in two submaps; a calibration, enough frames to fit on."""
+def check_atlas_ready(
+    session: Session, atlas_id: int, atlas: str, kind: str, params: dict[str, Any] | None = None
+) -> None:
+    """A retraining needs frames in two submaps; a calibration, enough frames to fit on; an
+    adaptation, enough revisit pairs of its choice (refused with the reason otherwise)."""
+    if kind == "adapt":
+        config = AdaptConfig(**(params or {}))
+        found = len(pair_frames(session, atlas_id=atlas_id, where=config.pair_filter()))
+        if found < config.min_pairs:
+            raise InvalidInput(
+                f"refused: atlas '{atlas}' has {found} revisit pair(s) matching the job's "
+                f"choice; adaptation needs at least {config.min_pairs} (verified closures "
+                "recorded by observe, or pairs labelled with POST /atlases/{atlas}/pairs)"
+            )
+        return
     if kind == "calibrate":
         frames = repo.count_frames(session, atlas_id=atlas_id)
         if frames < MIN_FRAMES:
@@ -82,7 +103,7 @@ def submit_job(
         found = repo.get_atlas(session, name=atlas)
         if config is not None:
             check_fits(session, config, atlas_id=found.id)
-        check_atlas_ready(session, found.id, atlas, kind)
+        check_atlas_ready(session, found.id, atlas, kind, params)
         job = jobs.create_job(session, atlas_id=found.id, kind=kind, params=params)
     enqueue_or_fail(sessions, queue.enqueue, job.id)
     with sessions() as session:  # a worker may have claimed it already

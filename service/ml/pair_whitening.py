@@ -83,9 +83,7 @@ class PairWhitening:
             raise ValueError(f"learned whitening needs at least 2 vectors, got {len(x)}")
         differences = x[pairs[:, 0]] - x[pairs[:, 1]]
         intra = differences.T @ differences / len(differences)
-        gamma = (
-            ledoit_wolf_shrinkage(differences) if config.shrinkage is None else config.shrinkage
-        )
+        gamma = ledoit_wolf_shrinkage(differences) if config.shrinkage is None else config.shrinkage
         target = np.trace(intra) / len(intra)
         if target <= 0.0:
             raise ValueError("the pairs' frames are identical: nothing to learn from")

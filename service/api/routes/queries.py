@@ -25,6 +25,7 @@ from service.api.forms import (
 from service.api.schemas import ErrorOut, ObserveOut, QueryOut
 from service.api.uploads import read_image_upload
 from service.atlas.loop_closures import record_if_inter_robot
+from service.atlas.revisit_pairs import record_verified
 
 router = APIRouter(tags=["queries"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -118,5 +119,12 @@ def observe(
         result=result,
         source="observe",
         query_frame_id=frame.id,
+    )
+    record_verified(
+        service.sessions,
+        service.settings,
+        result=result,
+        frame_id=frame.id,
+        enqueue=service.frames.enqueue,
     )
     return ObserveOut.model_validate({**asdict(result), "frame_id": frame.id})

@@ -122,7 +122,10 @@ def adapt_heads(
     blocks of them, :func:`split_pairs`)."""
     started = time.perf_counter()
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    base = active.config
+    inputs = fused_inputs(base, data.local, data.global_)
+    # a pair of identical vectors (the same image twice) says nothing about a change of view
+    pairs = pairs[np.any(inputs[pairs[:, 0]] != inputs[pairs[:, 1]], axis=1)]
     if len(pairs) < min_pairs:
         raise NoUsefulPairs(
             f"only {len(pairs)} usable revisit pair(s) match the job's choice; adaptation needs "
@@ -133,8 +136,6 @@ def adapt_heads(
         train, held = pairs[train_idx], pairs[held_idx]
     else:
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
-    base = active.config
-    inputs = fused_inputs(base, data.local, data.global_)
     whitening = PairWhitening.fit(inputs, train, config)
     heads = fold_into_heads(base, whitening)
     fit_seconds = time.perf_counter() - started

@@ -81,6 +81,11 @@ class PairWhitening:
             raise ValueError("learned whitening needs at least one pair")
         if len(x) < 2:
             raise ValueError(f"learned whitening needs at least 2 vectors, got {len(x)}")
+        mean = x.mean(0)
+        # every frame lies in mean + the span of the centred frames: on an atlas with fewer
+        # frames than coordinates, work in that span (exactly the same cosines, far cheaper)
+        basis = _span(x - mean)
+        x = (x - mean) @ basis
         differences = x[pairs[:, 0]] - x[pairs[:, 1]]
         intra = differences.T @ differences / len(differences)
         gamma = ledoit_wolf_shrinkage(differences) if config.shrinkage is None else config.shrinkage
@@ -91,13 +96,12 @@ class PairWhitening:
         values, axes = np.linalg.eigh(shrunk)
         values = np.clip(values, target * 1e-6, None)
         whiten = (axes / np.sqrt(values)) @ axes.T * np.sqrt(target)  # C_S^-1/2, scale kept
-        mean = x.mean(0)
-        whitened = (x - mean) @ whiten
+        whitened = x @ whiten
         inter = whitened.T @ whitened / max(len(x) - 1, 1)
         inter_values, inter_axes = np.linalg.eigh(inter)
         order = np.argsort(inter_values)[::-1]
         kept = len(order) if config.max_dims is None else min(config.max_dims, len(order))
-        projection = whiten @ inter_axes[:, order[:kept]]
+        projection = basis @ whiten @ inter_axes[:, order[:kept]]
         return cls(
             mean=mean.astype(np.float32),
             projection=np.ascontiguousarray(projection, np.float32),
@@ -109,6 +113,17 @@ class PairWhitening:
         """``n x dim`` -> ``n x kept`` unit vectors."""
         x = np.asarray(vectors, np.float32)
         return l2_normalize((x - self.mean) @ self.projection)
+
+
+def _span(centred: np.ndarray) -> np.ndarray:
+    """``dim x r`` orthonormal basis of the rows of ``centred`` (``r <= n - 1``), or the
+    identity when the rows span (almost) every coordinate."""
+    n, dim = centred.shape
+    if n - 1 >= dim:
+        return np.eye(dim)
+    values, left = np.linalg.eigh(centred @ centred.T)
+    keep = values > max(values.max(), 0.0) * 1e-10
+    return np.asarray(centred.T @ left[:, keep] / np.sqrt(values[keep]))
 
 
 def ledoit_wolf_shrinkage(samples: np.ndarray) -> float:

@@ -13,6 +13,8 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.api.app import create_app
+from service.atlas.results import Candidate, QueryResult, SubmapGuess
+from service.atlas.revisit_pairs import record_verified
 from service.fleet.keys import Role, create_key
 from service.jobs.retraining import JobRunner
 from service.storage import jobs
@@ -195,3 +197,52 @@ def test_operator_labelled_pairs_scoped_by_atlas_and_role(app_client: TestClient
     # deleting a frame deletes its pairs
     assert client.delete(f"/v1/atlases/campus/frames/{c}", headers=bearer(ops)).status_code == 204
     assert client.get(url, headers=bearer(ops)).json() == []
+
+
+def test_automatic_adaptation_after_n_new_pairs(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    """With ``adapt_after_pairs`` 2, the second verified pair queues an adapt job; the third
+    none (a job is queued), but it counts towards the next, which the fourth queues."""
+    settings = make_settings(
+        tmp_path / "data", calibration_milestones="", adapt_after_pairs=2, sync_seconds=0.2
+    )
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        wait_ready(client)
+        create_atlas(client, submaps=("a",))
+        ids = []
+        for place in range(4):
+            name, data = cohog(place, "ref")
+            response = client.post(
+                "/v1/atlases/campus/frames",
+                data={"submap": "a", "robot_id": "r1"},
+                files={"image": (name, data)},
+            )
+            ids.append(response.json()["frame_id"])
+        service = client.app.state.runtime.service  # type: ignore[attr-defined]
+
+        def verified(frame: int, match: int) -> None:
+            result = QueryResult(
+                atlas="campus",
+                model_version=1,
+                match=Candidate(match, "a", "r1", 0.9, inliers=80, verified=True),
+                candidates=[],
+                loop_closure=True,
+                threshold=0.5,
+                predicted_submap=SubmapGuess(available=False),
+                keypoints=100,
+            )
+            assert record_verified(service.sessions, settings, result=result, frame_id=frame)
+
+        def adapt_jobs() -> list[dict]:
+            return [j for j in client.get("/v1/atlases/campus/jobs").json() if j["kind"] == "adapt"]
+
+        verified(ids[1], ids[0])
+        assert adapt_jobs() == []
+        verified(ids[2], ids[0])
+        (job,) = adapt_jobs()
+        assert job["status"] == "queued" and job["params"]["automatic"] is True
+        verified(ids[3], ids[0])  # a job is queued: none more
+        assert len(adapt_jobs()) == 1
+        client.post(f"/v1/atlases/campus/jobs/{job['id']}/cancel")
+        verified(ids[3], ids[1])  # two pairs past the first job's
+        latest = adapt_jobs()[0]
+        assert len(adapt_jobs()) == 2 and latest["params"]["through_pair"] == 4

@@ -87,6 +87,17 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "positive_window=0",
     )
     ev.add_argument(
+        "--adapt-shots",
+        default="",
+        help="K values of the adapted rows (an adapt job's learned whitening from K revisit "
+        "pairs per submap, left out of the test queries), comma-separated; '' for none",
+    )
+    ev.add_argument(
+        "--adapt-shrinkage",
+        type=float,
+        help="the adapt job's shrinkage of the pairs' covariance (default: Ledoit-Wolf's)",
+    )
+    ev.add_argument(
         "--verify",
         default="",
         help="comma-separated matchers (mnn, lightglue): add geometric-verification rows",
@@ -222,6 +233,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         retrain_shots=_csv_list(int, args.retrain_shots),
         retrain_protocols=_csv_list(str, args.retrain_protocols),
         retrain_params=_named_values(args.retrain_param),
+        adapt_shots=_csv_list(int, args.adapt_shots),
+        adapt_shrinkage=args.adapt_shrinkage,
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         ransac_backend=settings.ransac_backend,

@@ -33,6 +33,7 @@ from service.api.schemas import (
     ModelVersionOut,
     NewApiKeyOut,
     ObserveOut,
+    PairOut,
     QueryOut,
     ReadyOut,
     SubmapOut,
@@ -255,11 +256,37 @@ class LoopNetClient:
         path = f"/atlases/{atlas}/loop-closures/{closure_id}/matches"
         return self._get(ClosureMatchesOut, path, limit=limit)
 
+    def list_pairs(
+        self,
+        atlas: str,
+        *,
+        robot: str | None = None,
+        submap: str | None = None,
+        limit: int = 100,
+    ) -> list[PairOut]:
+        """Revisit pairs (verified closures and labelled pairs), newest first."""
+        return self._list(
+            PairOut, f"/atlases/{atlas}/pairs", robot=robot, submap=submap, limit=limit
+        )
+
+    def label_pair(self, atlas: str, frame_id: int, other_frame_id: int) -> PairOut:
+        """Label two frames of the atlas as one place (a training pair for adapt jobs)."""
+        body = {"frame_id": frame_id, "other_frame_id": other_frame_id}
+        return self._post(PairOut, f"/atlases/{atlas}/pairs", json=body)
+
+    def delete_pair(self, atlas: str, pair_id: int) -> None:
+        self.request("DELETE", f"/atlases/{atlas}/pairs/{pair_id}")
+
     # ----- jobs and model versions -------------------------------------------------------
 
     def submit_job(self, atlas: str, **params: Any) -> JobOut:
         """Queue a retraining job; ``params`` are RetrainParams fields (shots, epochs, ...)."""
         body = {"kind": "retrain", "params": params}
+        return self._post(JobOut, f"/atlases/{atlas}/jobs", json=body)
+
+    def submit_adaptation(self, atlas: str, **params: Any) -> JobOut:
+        """Queue an adaptation job; ``params`` are AdaptParams fields (robots, since, ...)."""
+        body = {"kind": "adapt", "adaptation": params}
         return self._post(JobOut, f"/atlases/{atlas}/jobs", json=body)
 
     def list_jobs(self, atlas: str) -> list[JobOut]:

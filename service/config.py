@@ -98,6 +98,13 @@ class Settings(BaseSettings):
         description="Activate a retrained version even when it is worse than the active one on "
         "the frames it did not train on.",
     )
+    adapt_after_pairs: int = Field(
+        0,
+        ge=0,
+        description="Queue an adaptation job (kind adapt: learned whitening from revisit pairs) "
+        "once an atlas has collected this many verified revisit pairs since its last one "
+        "(0: never, the default; operators submit adapt jobs themselves).",
+    )
     verify_min_inliers: int | None = Field(
         None,
         ge=1,

@@ -59,6 +59,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "Jobs": (
         "calibration_milestones",
         "retrain_activate_worse",
+        "adapt_after_pairs",
         "job_stale_seconds",
         "job_requeue_seconds",
         "job_sweep_seconds",

@@ -24,6 +24,7 @@ from service.api.routes import (
     jobs,
     keys,
     loop_closures,
+    pairs,
     queries,
     snapshots,
 )
@@ -85,6 +86,7 @@ def create_app(
         jobs,
         keys,
         loop_closures,
+        pairs,
         snapshots,
         browse,
     )

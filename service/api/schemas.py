@@ -6,7 +6,7 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
@@ -19,6 +19,7 @@ from service.domain.statuses import (
     Role,
     literal_of,
 )
+from service.jobs.adaptation_config import AdaptConfig
 from service.ml.calibration_config import CalibrationConfig
 from service.ml.training import TrainingConfig
 
@@ -297,6 +298,14 @@ class CalibrateParams(BaseModel):
     )
 
 
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class AdaptParams(AdaptConfig):
+    """Parameters of an adaptation job; every field has a default."""
+
+
+JOB_PARAMS = {"retrain": "params", "calibrate": "calibration", "adapt": "adaptation"}
+
+
 class JobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -304,7 +313,9 @@ class JobIn(BaseModel):
         "retrain",
         description="'retrain': train the heads (on the latest calibration); 'calibrate': fit "
         "the atlas's calibration (local aggregation, branch whitening, calibrated score) on "
-        "its stored features. Each writes and activates a new model version.",
+        "its stored features; 'adapt': learn a whitening from the atlas's revisit pairs "
+        "(verified closures and labelled pairs). Each writes a new model version, activated "
+        "when not worse than the active one.",
     )
     params: RetrainParams = Field(
         default_factory=RetrainParams, description="A retraining's parameters."
@@ -312,17 +323,25 @@ class JobIn(BaseModel):
     calibration: CalibrateParams = Field(
         default_factory=CalibrateParams, description="A calibration's parameters."
     )
+    adaptation: AdaptParams = Field(
+        default_factory=AdaptParams, description="An adaptation's parameters."
+    )
 
     @model_validator(mode="after")
     def _parameters_of_its_kind(self) -> JobIn:
-        other = "params" if self.kind == "calibrate" else "calibration"
-        if other in self.model_fields_set:
-            raise ValueError(f"'{other}' does not apply to a {self.kind} job")
+        for kind, other in JOB_PARAMS.items():
+            if kind != self.kind and other in self.model_fields_set:
+                raise ValueError(f"'{other}' does not apply to a {self.kind} job")
         return self
 
     def job_params(self) -> dict[str, Any]:
         if self.kind == "calibrate":
             return self.calibration.model_dump()
+        if self.kind == "adapt":
+            dumped: dict[str, Any] = TypeAdapter(AdaptParams).dump_python(
+                self.adaptation, mode="json", exclude_defaults=True
+            )
+            return dumped
         return asdict(self.params)
 
 
@@ -377,4 +396,26 @@ class LoopClosureOut(BaseModel):
     similarity: float
     model_version: int
     source: str = Field(description="query or observe")
+    created_at: datetime
+
+
+class PairIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    frame_id: int = Field(ge=1, le=2**31 - 1, description="A frame of the atlas.")
+    other_frame_id: int = Field(
+        ge=1, le=2**31 - 1, description="Another frame of the atlas, of the same place."
+    )
+
+
+class PairOut(BaseModel):
+    id: int
+    frame_id: int = Field(description="The frame that revisits (an observation's new frame).")
+    other_frame_id: int = Field(description="The frame it was matched with.")
+    robot_id: str
+    other_robot_id: str
+    submap: str
+    other_submap: str
+    source: str = Field(description="observe (a verified closure) or operator (labelled)")
+    inliers: int | None = Field(description="RANSAC inliers of a verified closure.")
     created_at: datetime

@@ -20,9 +20,11 @@ from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameFields, FrameIngest
 from service.atlas.loop_closures import record_if_inter_robot
 from service.atlas.names import validate_name
+from service.atlas.pairs import RevisitPairs
 from service.atlas.query import AtlasQueries
 from service.atlas.reads import Reads
 from service.atlas.results import QueryResult
+from service.atlas.revisit_pairs import record_verified
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification, verification_config
 from service.concurrency import InferenceGate, default_workers
@@ -57,6 +59,7 @@ class AtlasService:
         self.queries = AtlasQueries(settings, sessions, self.states, self.frames, self.verification)
         self.reads = Reads(sessions)
         self.browse = Browse(sessions)
+        self.pairs = RevisitPairs(sessions)
         # what the follower thread, the tests and the CLI reach through the facade
         self._loaded = self.states.loaded_states
         self.broken = self.states.broken
@@ -246,12 +249,21 @@ class AtlasService:
         return result, frame
 
     def _record_observation(self, fields: FrameFields, result: QueryResult, frame: Frame) -> None:
+        """An observation's loop onto another robot's frame, and its verified closure as a
+        revisit pair (which may queue an automatic adaptation)."""
         record_if_inter_robot(
             self.sessions,
             robot_id=fields.robot_id,
             result=result,
             source="observe",
             query_frame_id=frame.id,
+        )
+        record_verified(
+            self.sessions,
+            self.settings,
+            result=result,
+            frame_id=frame.id,
+            enqueue=self.frames.enqueue,
         )
 
     def _robot_filter(self, fields: FrameFields) -> QueryFilter:

@@ -1,4 +1,5 @@
-"""Automatic calibration: an atlas is calibrated when its frame count reaches a milestone.
+"""Automatic jobs: an atlas is calibrated when its frame count reaches a milestone, and adapted
+when it has collected ``adapt_after_pairs`` new revisit pairs.
 
 Checked in the transaction that stores a frame, so the job row commits with the frame that
 crossed the milestone. Each milestone gets one job, ever; when another job of the atlas is
@@ -7,12 +8,13 @@ running at that moment, the first frame stored after it finishes creates it.
 
 from __future__ import annotations
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.storage import jobs
 from service.storage import repository as repo
-from service.storage.models import Job
+from service.storage.models import Job, RevisitPair
 
 
 def due_milestone(milestones: tuple[int, ...], frames: int) -> int | None:
@@ -34,4 +36,30 @@ def calibration_due(session: Session, settings: Settings, atlas_id: int) -> Job 
         return None
     return jobs.create_job(
         session, atlas_id=atlas_id, kind="calibrate", params={"milestone": milestone}
+    )
+
+
+def adaptation_due(session: Session, settings: Settings, atlas_id: int) -> Job | None:
+    """Create an adaptation job once the atlas has ``adapt_after_pairs`` revisit pairs newer
+    than the ones its last adaptation job was queued with (off at 0, the default)."""
+    every = settings.adapt_after_pairs
+    if every <= 0:
+        return None
+    last = session.scalars(
+        select(Job)
+        .where(Job.atlas_id == atlas_id, Job.kind == "adapt")
+        .order_by(Job.id.desc())
+        .limit(1)
+    ).first()
+    through = int((last.params or {}).get("through_pair") or 0) if last is not None else 0
+    newer = session.scalars(
+        select(RevisitPair.id).where(RevisitPair.atlas_id == atlas_id, RevisitPair.id > through)
+    ).all()
+    if len(newer) < every or jobs.has_active_job(session, atlas_id=atlas_id):
+        return None
+    return jobs.create_job(
+        session,
+        atlas_id=atlas_id,
+        kind="adapt",
+        params={"through_pair": max(newer), "automatic": True},
     )

@@ -23,6 +23,7 @@ class JobKind(enum.StrEnum):
 
     RETRAIN = "retrain"
     CALIBRATE = "calibrate"
+    ADAPT = "adapt"
 
 
 class JobStatus(enum.StrEnum):

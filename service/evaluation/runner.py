@@ -32,6 +32,8 @@ from tqdm import tqdm
 
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
+from service.evaluation.adaptation_pass import PROTOCOL as ADAPT_PROTOCOL
+from service.evaluation.adaptation_pass import adaptation_rows
 from service.evaluation.baselines import build_baseline
 from service.evaluation.baselines.seqslam import full_seqslam
 from service.evaluation.calibrated_pass import (
@@ -64,6 +66,7 @@ from service.evaluation.verification_pass import (
 from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
+from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.presets import ModelPreset, resolve_preset
 from service.ml.sequences import SequenceSettings
@@ -133,6 +136,8 @@ class EvalConfig:
     retrain_shots: tuple[int, ...] = ()
     retrain_protocols: tuple[str, ...] = PROTOCOLS
     retrain_params: dict[str, Any] = field(default_factory=dict)
+    adapt_shots: tuple[int, ...] = ()
+    adapt_shrinkage: float | None = None
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5
@@ -398,6 +403,32 @@ def _working_sizes(
     }
 
 
+def adapted_rows(
+    config: EvalConfig,
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    first_pass: PassResult,
+    calibrated_branches: dict[str, CalibratedBranches],
+    methods: Sequence[MethodResult],
+) -> list[RetrainingRow]:
+    """The adaptation job's rows (revisit pairs, :mod:`adaptation_pass`), from the service row."""
+    extractor = first_pass.preset.local.name
+    service_row = f"loopnet-{extractor}"
+    calibrated_start = calibrated_branches.get(service_row)
+    before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
+    before = next(m for m in methods if m.name == before_row)
+    return adaptation_rows(
+        dataset,
+        submap_of,
+        first_pass,
+        StartingPoint.of(first_pass, before, calibrated_start),
+        shots=config.adapt_shots,
+        config=PairWhiteningConfig(shrinkage=config.adapt_shrinkage),
+        k=config.k,
+        extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
+    )
+
+
 def run_evaluation(config: EvalConfig) -> EvalResult:
     """Run every method on ``config.dataset`` and write the report into ``config.output``."""
     dataset = load_dataset(
@@ -559,6 +590,12 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
         )
         methods += [row.after for row in retraining]
+        checkpoint("verification and baselines")
+    if config.adapt_shots:
+        retraining += adapted_rows(
+            config, dataset, submap_of, first_pass, calibrated_branches, methods
+        )
+        methods += [row.after for row in retraining if row.protocol == ADAPT_PROTOCOL]
         checkpoint("verification and baselines")
     if config.verify and first_keypoints is not None:
         extractor_name = first_pass.preset.local.name

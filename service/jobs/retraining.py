@@ -28,8 +28,9 @@ from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames, load_model_inputs
-from service.jobs.calibration import run_calibration
+from service.jobs.kinds import KINDS
 from service.ml.active_model import ActiveModel
+from service.ml.adaptation import NoUsefulPairs
 from service.ml.heads import HeadsConfig
 from service.ml.held_out import compare_on_held_out, split_for_job
 from service.ml.retrained_impostors import retrained_impostor_model
@@ -70,20 +71,22 @@ class JobRunner:
             atlas = session.get(Atlas, atlas_id)
             atlas_name = atlas.name if atlas else f"#{atlas_id}"
         log.info("job %d (%s of atlas '%s'): started", job_id, kind, atlas_name)
-        if kind not in ("retrain", "calibrate"):
+        job_kind = KINDS.get(kind)
+        if job_kind is None:
             self._finish(job_id, JobStatus.FAILED, f"unknown job kind {kind!r}")
             log.error("job %d (atlas '%s'): failed, unknown kind %r", job_id, atlas_name, kind)
             return
         files: list[Any] = []
         try:
-            if kind == "calibrate":
-                version = run_calibration(self, job_id, atlas_id, params, files)
-            else:
-                version = self._retrain(job_id, atlas_id, params, files)
+            version = job_kind.run(self, job_id, atlas_id, params, files)
         except TrainingCancelled as exc:
             self._cleanup(files)
             self._finish(job_id, JobStatus.CANCELLED, str(exc))
             log.info("job %d (atlas '%s'): cancelled (%s)", job_id, atlas_name, exc)
+        except NoUsefulPairs as exc:  # refused, nothing changed: the reason is the message
+            self._cleanup(files)
+            self._finish(job_id, JobStatus.FAILED, f"refused: {exc}")
+            log.info("job %d (atlas '%s'): refused (%s)", job_id, atlas_name, exc)
         except Exception as exc:
             log.exception("job %d (atlas '%s'): failed", job_id, atlas_name)
             self._cleanup(files)
@@ -114,7 +117,7 @@ class JobRunner:
         for path in files:
             path.unlink(missing_ok=True)
 
-    def _retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
+    def retrain(self, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]) -> int:
         config = TrainingConfig(**params)
         self._progress(job_id, 1, "loading stored features")
         with self.sessions() as session:

@@ -12,64 +12,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from pydantic import ValidationError
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.model_versions import VersionConfig
-from service.errors import InvalidInput, NotReady
-from service.jobs.calibration import MIN_FRAMES, calibration_config
-from service.ml.training import TrainingConfig
+from service.errors import NotReady
+from service.jobs.kinds import kind_of
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.models import Job, JobStatus
-
-JOB_KINDS = ("retrain", "calibrate")
-
-
-def check_params(kind: str, params: dict[str, Any]) -> TrainingConfig | None:
-    """Refuse parameters the job would refuse (422 before anything is written); a retraining's
-    training config, to check against the atlas (None for a calibration)."""
-    if kind == "calibrate":
-        try:
-            calibration_config(params)
-        except (TypeError, ValueError) as exc:
-            raise InvalidInput(str(exc)) from exc
-        return None
-    if kind != "retrain":
-        raise InvalidInput(f"unknown job kind {kind!r}; choose one of {list(JOB_KINDS)}")
-    try:
-        return TrainingConfig(**params)
-    except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors()
-        )
-        raise InvalidInput(f"invalid job parameters: {problems}") from exc
-
-
-def check_fits(session: Session, config: TrainingConfig, *, atlas_id: int) -> None:
-    """Refuse a config the worker would fail on with the atlas's active heads (422 at submit)."""
-    active = repo.active_model_version(session, atlas_id=atlas_id)
-    try:
-        config.check_fits(VersionConfig.of(active).heads)
-    except ValueError as exc:
-        raise InvalidInput(str(exc)) from exc
-
-
-def check_atlas_ready(session: Session, atlas_id: int, atlas: str, kind: str) -> None:
-    """A retraining needs frames in two submaps; a calibration, enough frames to fit on."""
-    if kind == "calibrate":
-        frames = repo.count_frames(session, atlas_id=atlas_id)
-        if frames < MIN_FRAMES:
-            raise InvalidInput(
-                f"a calibration needs at least {MIN_FRAMES} frames; atlas '{atlas}' has {frames}"
-            )
-        return
-    populated = repo.count_populated_submaps(session, atlas_id=atlas_id)
-    if populated < 2:
-        raise InvalidInput(
-            f"retraining needs frames in at least two submaps; atlas '{atlas}' has {populated}"
-        )
 
 
 def submit_job(
@@ -81,12 +31,11 @@ def submit_job(
     params: dict[str, Any],
 ) -> Job:
     """Validate, create and enqueue a job; returns it as it stands once enqueued."""
-    config = check_params(kind, params)
+    job_kind = kind_of(kind)
+    config = job_kind.parse(params)  # 422 before anything is written
     with transaction(sessions) as session:
         found = repo.get_atlas(session, name=atlas)
-        if config is not None:
-            check_fits(session, config, atlas_id=found.id)
-        check_atlas_ready(session, found.id, atlas, kind)
+        job_kind.check_ready(session, found.id, atlas, config)
         job = jobs.create_job(session, atlas_id=found.id, kind=kind, params=params)
     enqueue_or_fail(sessions, enqueue, job.id)
     with sessions() as session:  # a worker may have claimed it already

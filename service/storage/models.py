@@ -280,3 +280,26 @@ class LoopClosureThumbnail(Base):
         ForeignKey("loop_closures.id", ondelete="CASCADE"), primary_key=True
     )
     jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class RevisitPair(Base):
+    """Two stored frames of one place, a training pair for adaptation (service/jobs/adaptation):
+    a closure ``observe`` verified (its new frame and the frame it matched, inliers at or above
+    the atlas's minimum), or a pair an operator labelled. Deleting either frame deletes it."""
+
+    __tablename__ = "revisit_pairs"
+    __table_args__ = (
+        UniqueConstraint("frame_id", "other_frame_id", name="uq_revisit_pairs_frames"),
+        Index("ix_revisit_pairs_atlas_created", "atlas_id", "created_at"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    atlas_id: Mapped[int] = mapped_column(ForeignKey("atlases.id", ondelete="CASCADE"))
+    # the frame that revisits (an observation's new frame) and the one it matched
+    frame_id: Mapped[int] = mapped_column(ForeignKey("frames.id", ondelete="CASCADE"), index=True)
+    other_frame_id: Mapped[int] = mapped_column(
+        ForeignKey("frames.id", ondelete="CASCADE"), index=True
+    )
+    source: Mapped[str] = mapped_column(String(16))  # observe | operator
+    inliers: Mapped[int | None] = mapped_column(Integer)  # None: labelled by an operator
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

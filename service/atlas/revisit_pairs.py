@@ -1,0 +1,191 @@
+"""Revisit pairs: two stored frames of one place, what an adaptation job learns from.
+
+``observe`` records one whenever its best candidate is geometrically verified (inliers at or
+above the atlas's minimum): the new frame and the frame it matched, often across a change of
+condition or robot. Operators label more through the API (and delete wrong ones). A ``query``
+keeps no frame, so it gives no pair. Pairs are chosen for a job by robot, time and submap
+(:class:`PairFilter`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from sqlalchemy import func, or_, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, aliased, sessionmaker
+
+from service.atlas.milestones import adaptation_due
+from service.atlas.results import QueryResult
+from service.config import Settings
+from service.domain.pairs import PairFilter as PairFilter
+from service.errors import Conflict, InvalidInput, NotFound
+from service.storage import repository as repo
+from service.storage.db import transaction
+from service.storage.models import Frame, RevisitPair, Submap
+
+log = logging.getLogger(__name__)
+
+SOURCES = ("observe", "operator")
+
+
+@dataclass(frozen=True)
+class PairRow:
+    """A pair as the API lists it."""
+
+    pair: RevisitPair
+    robot_id: str
+    other_robot_id: str
+    submap: str
+    other_submap: str
+
+
+def record_verified(
+    sessions: sessionmaker[Session],
+    settings: Settings,
+    *,
+    result: QueryResult,
+    frame_id: int,
+    enqueue: Callable[[int], None] | None = None,
+) -> int | None:
+    """Keep an observation's verified closure as a pair (its stored frame ``frame_id`` and the
+    match); queues an adaptation job when the atlas has collected its setting's number of new
+    pairs. Returns the pair's id, None when the answer is no verified closure."""
+    match = result.match
+    if match is None or not match.verified or match.frame_id == frame_id:
+        return None
+    job_id = None
+    with transaction(sessions) as session:
+        frame = session.get(Frame, frame_id)
+        other = session.get(Frame, match.frame_id)
+        if frame is None or other is None or frame.atlas_id != other.atlas_id:
+            return None  # deleted since the search
+        pair = RevisitPair(
+            atlas_id=frame.atlas_id,
+            frame_id=frame.id,
+            other_frame_id=other.id,
+            source="observe",
+            inliers=match.inliers,
+        )
+        session.add(pair)
+        session.flush()
+        job = adaptation_due(session, settings, frame.atlas_id)
+        job_id = job.id if job is not None else None
+        pair_id = pair.id
+    if job_id is not None and enqueue is not None:
+        try:
+            enqueue(job_id)
+        except Exception as exc:  # the job is stored queued; a worker's sweep will enqueue it
+            log.warning("adaptation job %d not queued now (%s); a worker will find it", job_id, exc)
+    return pair_id
+
+
+def label_pair(sessions: sessionmaker[Session], *, atlas: str, frame_id: int, other: int) -> int:
+    """An operator's pair of two frames of ``atlas`` (404 for a frame not in it, 422 for a
+    frame with itself, 409 when the pair exists in either order)."""
+    if frame_id == other:
+        raise InvalidInput("a pair needs two different frames")
+    try:
+        with transaction(sessions) as session:
+            found = repo.get_atlas(session, name=atlas)
+            for frame in (frame_id, other):
+                repo.get_frame(session, atlas=found, frame_id=frame)
+            exists = session.scalar(
+                select(RevisitPair.id).where(
+                    or_(
+                        (RevisitPair.frame_id == frame_id) & (RevisitPair.other_frame_id == other),
+                        (RevisitPair.frame_id == other) & (RevisitPair.other_frame_id == frame_id),
+                    )
+                )
+            )
+            if exists is not None:
+                raise Conflict(f"frames {frame_id} and {other} are already pair {exists}")
+            pair = RevisitPair(
+                atlas_id=found.id, frame_id=frame_id, other_frame_id=other, source="operator"
+            )
+            session.add(pair)
+            session.flush()
+            return int(pair.id)
+    except IntegrityError as exc:  # the same pair written concurrently
+        raise Conflict(f"frames {frame_id} and {other} are already a pair") from exc
+
+
+def delete_pair(sessions: sessionmaker[Session], *, atlas: str, pair_id: int) -> None:
+    """Delete one pair of ``atlas`` (404 when it has no such pair)."""
+    with transaction(sessions) as session:
+        found = repo.get_atlas(session, name=atlas)
+        pair = session.get(RevisitPair, pair_id)
+        if pair is None or pair.atlas_id != found.id:
+            raise NotFound(f"atlas '{atlas}' has no revisit pair {pair_id}")
+        session.delete(pair)
+
+
+def _filtered(atlas_id: int, where: PairFilter):  # type: ignore[no-untyped-def]
+    """The select of (pair, robot, other robot, submap, other submap) under ``where``."""
+    first, second = aliased(Frame), aliased(Frame)
+    first_submap, second_submap = aliased(Submap), aliased(Submap)
+    query = (
+        select(RevisitPair, first.robot_id, second.robot_id, first_submap.name, second_submap.name)
+        .join(first, first.id == RevisitPair.frame_id)
+        .join(second, second.id == RevisitPair.other_frame_id)
+        .join(first_submap, first_submap.id == first.submap_id)
+        .join(second_submap, second_submap.id == second.submap_id)
+        .where(RevisitPair.atlas_id == atlas_id)
+    )
+    if where.robots:
+        query = query.where(
+            or_(first.robot_id.in_(where.robots), second.robot_id.in_(where.robots))
+        )
+    if where.submaps:
+        query = query.where(
+            or_(first_submap.name.in_(where.submaps), second_submap.name.in_(where.submaps))
+        )
+    if where.since is not None:
+        query = query.where(RevisitPair.created_at >= where.since)
+    if where.until is not None:
+        query = query.where(RevisitPair.created_at < where.until)
+    return query
+
+
+def list_pairs(
+    sessions: sessionmaker[Session], *, atlas: str, where: PairFilter, limit: int = 100
+) -> list[PairRow]:
+    """Newest first."""
+    with sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        query = _filtered(found.id, where).order_by(
+            RevisitPair.created_at.desc(), RevisitPair.id.desc()
+        )
+        return [PairRow(*row) for row in session.execute(query.limit(limit))]
+
+
+def get_pair(sessions: sessionmaker[Session], *, atlas: str, pair_id: int) -> PairRow:
+    """One pair of ``atlas`` (404 when it has no such pair)."""
+    with sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        row = session.execute(
+            _filtered(found.id, PairFilter()).where(RevisitPair.id == pair_id)
+        ).first()
+        if row is None:
+            raise NotFound(f"atlas '{atlas}' has no revisit pair {pair_id}")
+        return PairRow(*row)
+
+
+def pair_frames(session: Session, *, atlas_id: int, where: PairFilter) -> list[tuple[int, int]]:
+    """The (frame, other frame) ids of every pair under ``where``, oldest first."""
+    query = _filtered(atlas_id, where).order_by(RevisitPair.id)
+    return [(row[0].frame_id, row[0].other_frame_id) for row in session.execute(query)]
+
+
+def count_pairs(session: Session, *, atlas_id: int, after_id: int = 0) -> int:
+    """Pairs of the atlas with an id above ``after_id`` (0: all)."""
+    return int(
+        session.scalar(
+            select(func.count(RevisitPair.id)).where(
+                RevisitPair.atlas_id == atlas_id, RevisitPair.id > after_id
+            )
+        )
+        or 0
+    )

@@ -1,0 +1,143 @@
+"""Adapted LoopNet in the evaluation: the ``adapt`` job's learned whitening from revisit pairs.
+
+The revisit protocol of :mod:`service.evaluation.retraining_pass` with the adaptation job's own
+code (:func:`adapt_heads`): K frames per submap from the *query* condition are revisits the
+service verified, each paired with its partner reference (the middle one of its right
+references); they join the atlas (as a second robot's frames, as ``observe`` stores them) and
+are left out of the test queries. The whitening is fitted on the atlas's frames and the
+training pairs; the job's gate judges it on held-out pairs and held-out stretches, and says
+which version the service would serve. Scores come from the impostor model the job refits.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from service.evaluation.calibrated_pass import top1_spread
+from service.evaluation.datasets import Dataset
+from service.evaluation.metrics import correct_matrix, rank_by_similarity
+from service.evaluation.protocol import evaluate_ranking
+from service.evaluation.retraining_pass import (
+    MAP_ROBOT,
+    QUERY_ROBOT,
+    RetrainingRow,
+    StartingPoint,
+    _rows,
+    _scored,
+    _subset,
+    query_submaps,
+)
+from service.evaluation.service_pass import PassResult
+from service.ml.adaptation import adapt_heads
+from service.ml.heads import LoopNetHeads
+from service.ml.pair_whitening import PairWhiteningConfig
+from service.ml.pipeline import embed_vectors
+from service.ml.training import TrainingData, split_shots
+
+PROTOCOL = "revisit-adapt"
+
+
+def partner_of(dataset: Dataset) -> np.ndarray:
+    """Each query's partner reference (its middle right one), -1 when it has none."""
+    partners = np.full(len(dataset.queries), -1, dtype=np.int64)
+    for i, query in enumerate(dataset.queries):
+        if query.positives:
+            positives = sorted(query.positives)
+            partners[i] = positives[len(positives) // 2]
+    return partners
+
+
+def adaptation_rows(
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    result: PassResult,
+    start: StartingPoint,
+    *,
+    shots: Sequence[int],
+    config: PairWhiteningConfig | None = None,
+    k: int = 10,
+    extractor_label: str = "DISK",
+) -> list[RetrainingRow]:
+    """One adapted model per K (revisit pairs per submap), from ``start``."""
+    ref_local, ref_global = start.references
+    query_local, query_global = start.queries
+    ref_submaps = np.asarray(submap_of, dtype=np.int64)
+    n_refs = len(ref_submaps)
+    revisited = query_submaps(dataset, submap_of)
+    partners = partner_of(dataset)
+    active = LoopNetHeads(start.base).eval()
+    rows: list[RetrainingRow] = []
+    for k_shots in shots:
+        answerable = np.flatnonzero(revisited >= 0)
+        picked, _ = split_shots(revisited[answerable], k_shots)
+        query_shots = answerable[picked]
+        test = np.setdiff1d(np.arange(len(dataset.queries)), query_shots)
+        data = TrainingData(
+            local=np.concatenate([ref_local, query_local[query_shots]]),
+            global_=np.concatenate([ref_global, query_global[query_shots]]),
+            submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
+            frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
+            robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
+        )
+        pairs = np.stack([n_refs + np.arange(len(query_shots)), partners[query_shots]], axis=1)
+        adapted = adapt_heads(
+            data, pairs, active, config or PairWhiteningConfig(), min_pairs=2, window=2
+        )
+        heads = adapted.heads
+        started = time.perf_counter()
+        references = embed_vectors(heads, ref_local, ref_global)
+        ranking = rank_by_similarity(
+            embed_vectors(heads, query_local[test], query_global[test]) @ references.T, k
+        )
+        per_query = (time.perf_counter() - started) * 1000.0 / max(len(test), 1)
+        cosine_top = ranking.scores[:, 0].copy()
+        ranking, score_text = _scored(heads, start, ranking)
+        subset = _subset(dataset, test)
+        right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
+        after = evaluate_ranking(
+            f"adapted-revisit-k{k_shots}",
+            f"LoopNet {extractor_label} adapted: learned whitening from {len(pairs)} revisit "
+            f"pairs ({k_shots}/submap)",
+            "adapted",
+            ranking,
+            subset,
+            submap_of,
+            query_ms=np.full(len(test), per_query),
+            details={
+                "protocol": PROTOCOL,
+                "shots_per_submap": k_shots,
+                "adaptation": adapted.metrics,
+                "score": score_text,
+                "top1_spread": top1_spread(cosine_top, ranking.scores[:, 0], right),
+            },
+        )
+        before = evaluate_ranking(
+            f"untrained-{PROTOCOL}-k{k_shots}",
+            start.before.label,
+            "loopnet",
+            _rows(start.before.ranking, test),
+            subset,
+            submap_of,
+        )
+        gate = {**adapted.gate, "frames": adapted.gate.get("pairs", 0)}
+        rows.append(
+            RetrainingRow(
+                protocol=PROTOCOL,
+                shots=k_shots,
+                train_frames=int(adapted.metrics["training_pairs"]),
+                test_queries=int(len(test)),
+                before=before,
+                after=after,
+                classifier_submap_accuracy=float("nan"),
+                train_seconds=float(adapted.metrics["fit_seconds"]),
+                epochs_run=0,
+                best_epoch=1,
+                shots_used=k_shots,
+                calibrated=start.calibrated,
+                gate=gate,
+            )
+        )
+    return rows

@@ -1,0 +1,129 @@
+"""An adaptation job (kind ``adapt``): learn from the atlas's revisit pairs, gate, publish.
+
+The pairs (verified closures ``observe`` recorded and operator-labelled ones, chosen by robot,
+time and submap) give a learned whitening of the fused input (:mod:`service.ml.adaptation`),
+folded into heads over the active calibration's branches. The not-worse gate compares it with
+the active version on held-out pairs and held-out stretches; a version that is worse is kept
+but not activated (unless ``retrain_activate_worse``), and the job's message gives the gain it
+found, or says it found none. A job without enough usable pairs is refused with the reason.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from service.atlas import model_versions as models_store
+from service.atlas.revisit_pairs import pair_frames
+from service.index.builder import load_model_inputs
+from service.jobs.adaptation_config import AdaptConfig as AdaptConfig
+from service.ml.active_model import ActiveModel
+from service.ml.adaptation import NoUsefulPairs, adapt_heads
+from service.ml.pair_whitening import PairWhiteningConfig
+from service.ml.retrained_impostors import retrained_impostor_model
+from service.ml.training import TrainingCancelled, TrainingData
+from service.storage import jobs
+from service.storage import repository as repo
+from service.storage.feature_store import load_calibration_inputs
+
+if TYPE_CHECKING:
+    from service.jobs.retraining import JobRunner
+
+
+def run_adaptation(
+    runner: JobRunner, job_id: int, atlas_id: int, params: dict[str, Any], files: list[Any]
+) -> int:
+    """Fit, gate, publish; returns the new model version (active or not)."""
+    config = AdaptConfig(**params)
+    runner._progress(job_id, 1, "loading stored features and revisit pairs")
+    with runner.sessions() as session:
+        active = repo.active_model_version(session, atlas_id=atlas_id)
+        active_heads = models_store.load_heads(active, runner.settings.models_dir)
+        active_config = models_store.VersionConfig.of(active)
+        calibration = models_store.load_calibration(active, runner.settings.models_dir)
+        stored = load_model_inputs(session, atlas_id, calibration)
+        chosen = pair_frames(session, atlas_id=atlas_id, where=config.pair_filter())
+    row_of = {int(frame): i for i, frame in enumerate(stored.ids)}
+    pairs = np.array(
+        [(row_of[a], row_of[b]) for a, b in chosen if a in row_of and b in row_of], np.int64
+    )
+    data = TrainingData(
+        stored.local, stored.global_, stored.submaps, stored.ids, np.asarray(stored.robots)
+    )
+    runner._progress(job_id, 10, f"learning a whitening from {len(pairs)} pairs")
+    result = adapt_heads(
+        data,
+        pairs,
+        active_heads,
+        PairWhiteningConfig(config.shrinkage, config.max_dims),
+        window=config.window,
+        min_pairs=config.min_pairs,
+    )
+    gate = result.gate
+    activate = gate["not_worse"] or runner.settings.retrain_activate_worse
+    with runner.sessions() as session:
+        if jobs.get_job(session, job_id=job_id).cancel_requested:
+            raise TrainingCancelled("cancelled after fitting")
+        version = 1 + max(v.version for v in repo.list_model_versions(session, atlas_id=atlas_id))
+    weights = models_store.weights_file(runner.settings.models_dir, atlas_id, version)
+    files.append(weights)
+    result.heads.save(weights)
+    version_calibration = None
+    if calibration is not None and active_config.calibration is not None:
+        runner._progress(job_id, 40, "refitting the impostor model")
+        with runner.sessions() as session:
+            inputs = load_calibration_inputs(session, atlas_id)
+        calibration.impostors = retrained_impostor_model(result.heads, calibration, inputs)
+        del inputs
+        path = models_store.calibration_file(runner.settings.models_dir, atlas_id, version)
+        files.append(path)
+        calibration.save(path)
+        version_calibration = {
+            **active_config.calibration,
+            "path": str(path.relative_to(runner.settings.models_dir)),
+        }
+    metrics: dict[str, Any] = {**result.metrics, "held_out": gate, "activated": activate}
+    if activate:
+        runner._progress(job_id, 50, f"re-embedding {len(stored)} frames from stored features")
+        model = ActiveModel(result.heads, calibration)
+        metrics.update(runner._reembed(job_id, atlas_id, version, model, len(stored), files))
+    runner.publish(
+        job_id,
+        atlas_id,
+        models_store.VersionConfig(
+            result.heads.config,
+            trained=True,
+            training={"adapt": params, "method": "learned whitening from revisit pairs"},
+            job_id=job_id,
+            calibration=version_calibration,
+        ),
+        metrics,
+        weights_path=str(weights.relative_to(runner.settings.models_dir)),
+        activate=activate,
+        message=f"model version {version} {verdict(gate, activate)}",
+    )
+    return version
+
+
+def verdict(gate: dict[str, Any], activated: bool) -> str:
+    """One line: the gain on held-out pairs, or that there was none, and what became of it."""
+    if gate["change"] is None:
+        found = "no held-out pairs to measure a gain on"
+    else:
+        gain = "a gain" if gate["change"] > 0 else "no gain" if gate["change"] == 0 else "a loss"
+        found = (
+            f"{gain}: held-out pairs ({gate['pairs']}) find their partner first "
+            f"{gate['active']:.3f} -> {gate['new']:.3f}"
+        )
+    if activated:
+        return f"is active ({found})" if gate["not_worse"] else f"is active, forced ({found})"
+    why = (
+        "worse on held-out pairs"
+        if not gate["pairs_not_worse"]
+        else "worse on the atlas's held-out stretches"
+    )
+    return f"was not activated: {why} ({found})"
+
+
+__all__ = ["AdaptConfig", "NoUsefulPairs", "run_adaptation", "verdict"]

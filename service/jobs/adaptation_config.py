@@ -1,0 +1,46 @@
+"""An adaptation job's parameters: what the API validates at submit and the worker runs with
+(kept apart from the job's code so that the API's schemas load no numerical library)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
+
+from service.domain.pairs import PairFilter
+
+
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class AdaptConfig:
+    """Parameters of one adaptation job: which pairs, and how the whitening is regularised."""
+
+    robots: tuple[str, ...] = Field(
+        default=(), description="Only pairs with a frame of one of these robots; empty: all."
+    )
+    submaps: tuple[str, ...] = Field(
+        default=(), description="Only pairs with a frame in one of these submaps; empty: all."
+    )
+    since: datetime | None = Field(default=None, description="Only pairs recorded from then.")
+    until: datetime | None = Field(default=None, description="Only pairs recorded before then.")
+    shrinkage: float | None = Field(
+        default=None,
+        ge=0,
+        le=1,
+        description="Weight of the identity in the pairs' covariance; unset: Ledoit-Wolf's.",
+    )
+    max_dims: int | None = Field(
+        default=None, ge=2, le=4096, description="Axes kept; unset: all of the fused input."
+    )
+    min_pairs: int = Field(
+        default=10, ge=2, le=100_000, description="Fewer usable pairs: the job is refused."
+    )
+    window: int = Field(
+        default=2, ge=0, le=1000, description="Frames of one robot this close are one place."
+    )
+    # set by the automatic trigger: the newest pair the job was queued for
+    through_pair: int | None = Field(default=None, ge=0)
+    automatic: bool = False
+
+    def pair_filter(self) -> PairFilter:
+        return PairFilter(self.robots, self.submaps, self.since, self.until)

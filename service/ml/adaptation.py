@@ -1,0 +1,161 @@
+"""Adaptation from revisit pairs: learned whitening of the fused input, judged on held-out pairs.
+
+What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit rows both run:
+
+1. the pairs are split into training pairs and held-out pairs (whole blocks of them, in the
+   order they were recorded: neighbouring pairs of one drive are near-copies of each other);
+2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs, and
+   folded into heads over the same branches (:func:`fold_into_heads`);
+3. the not-worse gate compares the active and the new heads on the held-out pairs (each side
+   of a pair ranks every atlas frame but its own neighbourhood; right: the other side or its
+   neighbourhood) and on the atlas's held-out stretches (:func:`compare_on_held_out`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.ml.heads import LoopNetHeads
+from service.ml.held_out import HELD_OUT_SHARE, compare_on_held_out, split_for_job
+from service.ml.pair_whitening import (
+    PairWhitening,
+    PairWhiteningConfig,
+    fold_into_heads,
+    fused_inputs,
+)
+from service.ml.pipeline import embed_vectors
+from service.ml.training import TrainingData
+
+HELD_OUT_BLOCKS = 10  # pairs are cut into this many blocks in order; held out: every 5th
+MIN_HELD_OUT = 1  # a job with fewer held-out pairs than this gates on stretches only
+BLOCK_VALUES = 1 << 24  # similarities held at once: judged frames x atlas
+
+
+class NoUsefulPairs(ValueError):
+    """An adaptation refused before it changed anything; the message says why, in one line."""
+
+
+@dataclass
+class AdaptationResult:
+    heads: LoopNetHeads
+    whitening: PairWhitening
+    gate: dict[str, Any]
+    metrics: dict[str, Any]
+
+
+def split_pairs(count: int, share: float = HELD_OUT_SHARE) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of training and held-out pairs among ``count`` recorded in order: about
+    ``share`` of them held out, as evenly spaced whole blocks."""
+    if count < 2:
+        return np.arange(count), np.zeros(0, dtype=np.int64)
+    blocks = np.minimum(np.arange(count) * HELD_OUT_BLOCKS // count, HELD_OUT_BLOCKS - 1)
+    every = max(2, round(1 / share))
+    held = (blocks % every) == every // 2
+    return np.flatnonzero(~held), np.flatnonzero(held)
+
+
+def pair_scores(
+    embeddings: np.ndarray, data: TrainingData, pairs: np.ndarray, window: int
+) -> tuple[float, float]:
+    """(recall@1, mean reciprocal rank) of each side of ``pairs`` finding the other: every
+    frame is ranked but the asking frame's own neighbourhood (same robot within ``window``
+    frames); right: the other side, or a frame of its robot within ``window`` of it."""
+    codes, rank, _ = data.sequence
+    askers = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    partners = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    block = max(1, BLOCK_VALUES // max(len(embeddings), 1))
+    hits, reciprocal = 0, 0.0
+    for start in range(0, len(askers), block):
+        ask, partner = askers[start : start + block], partners[start : start + block]
+        similarity = embeddings[ask] @ embeddings.T
+        own = (codes[None, :] == codes[ask, None]) & (
+            np.abs(rank[None, :] - rank[ask, None]) <= window
+        )
+        similarity[own] = -np.inf
+        right = (codes[None, :] == codes[partner, None]) & (
+            np.abs(rank[None, :] - rank[partner, None]) <= window
+        )
+        right &= ~own
+        best_right = np.where(right, similarity, -np.inf).max(axis=1)
+        better = (similarity > best_right[:, None]).sum(axis=1)
+        hits += int(np.sum(better == 0))
+        reciprocal += float(np.sum(1.0 / (better + 1)))
+    return hits / len(askers), reciprocal / len(askers)
+
+
+def compare_on_pairs(
+    active: LoopNetHeads, new: LoopNetHeads, data: TrainingData, pairs: np.ndarray, window: int
+) -> dict[str, Any]:
+    """:func:`pair_scores` of both heads; not worse when neither score falls."""
+    if len(pairs) < MIN_HELD_OUT:
+        return {"pairs": 0, "active": None, "new": None, "change": None, "not_worse": True}
+    before = pair_scores(embed_vectors(active, data.local, data.global_), data, pairs, window)
+    after = pair_scores(embed_vectors(new, data.local, data.global_), data, pairs, window)
+    return {
+        "pairs": int(len(pairs)),
+        "active": round(before[0], 4),
+        "new": round(after[0], 4),
+        "change": round(after[0] - before[0], 4),
+        "mrr_active": round(before[1], 4),
+        "mrr_new": round(after[1], 4),
+        "not_worse": bool(after[0] >= before[0] and after[1] >= before[1]),
+    }
+
+
+def adapt_heads(
+    data: TrainingData,
+    pairs: np.ndarray,
+    active: LoopNetHeads,
+    config: PairWhiteningConfig,
+    *,
+    window: int = 2,
+    min_pairs: int = 10,
+    held_out_pairs: np.ndarray | None = None,
+) -> AdaptationResult:
+    """Fit a learned whitening on ``data`` (the active version's branch inputs of every atlas
+    frame) and ``pairs`` (``P x 2`` row indices), fold it into heads, and gate them against
+    ``active`` (the heads serving now). ``held_out_pairs``: which pairs judge (None: whole
+    blocks of them, :func:`split_pairs`)."""
+    started = time.perf_counter()
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    base = active.config
+    inputs = fused_inputs(base, data.local, data.global_)
+    # a pair of identical vectors (the same image twice) says nothing about a change of view
+    pairs = pairs[np.any(inputs[pairs[:, 0]] != inputs[pairs[:, 1]], axis=1)]
+    if len(pairs) < min_pairs:
+        raise NoUsefulPairs(
+            f"only {len(pairs)} usable revisit pair(s) match the job's choice; adaptation needs "
+            f"at least {min_pairs} (verified closures recorded by observe, or labelled pairs)"
+        )
+    if held_out_pairs is None:
+        train_idx, held_idx = split_pairs(len(pairs))
+        train, held = pairs[train_idx], pairs[held_idx]
+    else:
+        train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
+    whitening = PairWhitening.fit(inputs, train, config)
+    heads = fold_into_heads(base, whitening)
+    fit_seconds = time.perf_counter() - started
+    pairs_gate = compare_on_pairs(active, heads, data, held, window)
+    stretches = split_for_job(data, 1).held_out
+    stretch_gate = compare_on_held_out(active, heads, data, stretches, window)
+    gate = {
+        **pairs_gate,
+        "pairs_not_worse": pairs_gate["not_worse"],
+        "stretches": stretch_gate,
+        "not_worse": bool(pairs_gate["not_worse"] and stretch_gate["not_worse"]),
+    }
+    metrics = {
+        "pairs": int(len(pairs)),
+        "training_pairs": int(len(train)),
+        "held_out_pairs": int(len(held)),
+        "frames": int(len(data.submaps)),
+        "shrinkage": round(whitening.shrinkage, 4),
+        "dim": whitening.dim,
+        "fit_seconds": round(fit_seconds, 3),
+        "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
+    }
+    return AdaptationResult(heads, whitening, gate, metrics)

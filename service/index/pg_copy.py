@@ -30,9 +30,10 @@ def copy_rows(
     driver = session.connection().connection.driver_connection
     assert driver is not None
     columns = "(frame_id, robot_id, submap_id, ts, embedding)"
-    with driver.cursor() as cursor, cursor.copy(
-        f"COPY {table} {columns} FROM STDIN WITH (FORMAT binary)"
-    ) as copy:
+    with (
+        driver.cursor() as cursor,
+        cursor.copy(f"COPY {table} {columns} FROM STDIN WITH (FORMAT binary)") as copy,
+    ):
         copy.write(HEADER)
         for start in range(0, len(ids), BATCH):
             end = start + BATCH

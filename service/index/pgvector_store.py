@@ -36,6 +36,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.index.atlas_index import Hit
 from service.index.pg_copy import copy_rows
 
+JOURNAL_KEPT = 1024
 HALFVEC_ABOVE = 2000  # HNSW indexes vector(d) up to 2,000 dimensions, halfvec(d) up to 4,000
 
 
@@ -126,7 +127,10 @@ class PgVectorStore:
         self.table = table_name(atlas_id, version)
         self.kind = "halfvec" if dim > HALFVEC_ABOVE else "vector"
         self._size: tuple[float, int] | None = None  # (when counted, count)
-        self.generation = 0  # local adds and removals (caches key on it)
+        # this process's adds and removals, numbered, as AtlasIndex journals them (caches of
+        # the held vectors follow them); other replicas' writes are not in it
+        self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
+        self._journal_start = 0
 
     # ----- schema --------------------------------------------------------------------------
 
@@ -190,7 +194,7 @@ class PgVectorStore:
             return 0
         with self._transaction(session) as s:
             added = self._insert(s, ids, vectors, robots, times, submaps)
-        self._counted(added)
+        self._counted(added, 1, ids, vectors)
         return added
 
     def _insert(
@@ -269,7 +273,7 @@ class PgVectorStore:
                 text(f"DELETE FROM {self.table} WHERE frame_id = ANY(:ids)"), {"ids": ids.tolist()}
             )
             removed = int(getattr(result, "rowcount", 0) or 0)
-        self._counted(-removed)
+        self._counted(-removed, -1, ids, None)
         return removed
 
     @contextlib.contextmanager
@@ -280,10 +284,37 @@ class PgVectorStore:
         with self.sessions.begin() as own:
             yield own
 
-    def _counted(self, change: int) -> None:
-        self.generation += 1
+    def _counted(self, change: int, sign: int, ids: np.ndarray, vectors: np.ndarray | None) -> None:
         if self._size is not None:
             self._size = (self._size[0], self._size[1] + change)
+        stored = None if vectors is None else self.stored_like(ids, vectors)
+        self._journal.append((sign, ids.copy(), stored))
+        if len(self._journal) > JOURNAL_KEPT:
+            drop = len(self._journal) - JOURNAL_KEPT // 2
+            self._journal = self._journal[drop:]
+            self._journal_start += drop
+
+    @property
+    def generation(self) -> int:
+        """How many adds and removals this process made through this object."""
+        return self._journal_start + len(self._journal)
+
+    def changes_since(
+        self, generation: int
+    ) -> list[tuple[int, np.ndarray, np.ndarray | None]] | None:
+        """This process's adds (+1, ids, vectors) and removals (-1, ids, None) after
+        ``generation``; None when the journal no longer reaches back that far."""
+        if generation < self._journal_start or generation > self.generation:
+            return None
+        return list(self._journal[generation - self._journal_start :])
+
+    def stored_like(self, ids: np.ndarray, added: np.ndarray) -> np.ndarray:
+        """What :meth:`vectors` returns for ``ids`` just added as ``added`` (float16-rounded
+        for ``halfvec``), without reading them back."""
+        added = np.asarray(added, dtype=np.float32)
+        if self.kind == "halfvec":
+            return added.astype(np.float16).astype(np.float32)
+        return added.copy()
 
     # ----- reads ---------------------------------------------------------------------------
 
@@ -330,6 +361,19 @@ class PgVectorStore:
         if missing:
             raise KeyError(f"frames not held: {missing[:5]}")
         return np.stack([found[int(i)] for i in ids]).astype(np.float32)
+
+    def missing_frames(self, session: Session) -> list[int]:
+        """The atlas's frames without a row here (to embed), in id order."""
+        return [
+            int(i)
+            for i in session.scalars(
+                text(
+                    f"SELECT f.id FROM frames f LEFT JOIN {self.table} v ON v.frame_id = f.id"
+                    " WHERE f.atlas_id = :atlas AND v.frame_id IS NULL ORDER BY f.id"
+                ),
+                {"atlas": self.atlas_id},
+            )
+        ]
 
     def entries(self) -> tuple[np.ndarray, np.ndarray]:
         """Every frame id held and its vector (a snapshot's export)."""

@@ -51,14 +51,37 @@ def embedded_postgres(
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE, "check": True}
     try:
         subprocess.run(
-            [str(binaries / "initdb"), "-D", str(data), "-U", "postgres", "--auth=trust",
-             "--encoding=utf8", "--no-sync"],
-            cwd=root, **user, **quiet,  # type: ignore[call-overload]
+            [
+                str(binaries / "initdb"),
+                "-D",
+                str(data),
+                "-U",
+                "postgres",
+                "--auth=trust",
+                "--encoding=utf8",
+                "--no-sync",
+            ],
+            cwd=root,
+            **user,
+            **quiet,  # type: ignore[call-overload]
         )
         subprocess.run(
-            [str(binaries / "pg_ctl"), "-D", str(data), "-o", options, "-l", str(root / "log"),
-             "-w", "-t", "60", "start"],
-            cwd=root, **user, **quiet,  # type: ignore[call-overload]
+            [
+                str(binaries / "pg_ctl"),
+                "-D",
+                str(data),
+                "-o",
+                options,
+                "-l",
+                str(root / "log"),
+                "-w",
+                "-t",
+                "60",
+                "start",
+            ],
+            cwd=root,
+            **user,
+            **quiet,  # type: ignore[call-overload]
         )
     except (subprocess.CalledProcessError, OSError) as exc:
         log = root / "log"
@@ -71,7 +94,10 @@ def embedded_postgres(
     finally:
         subprocess.run(
             [str(binaries / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop"],
-            cwd=root, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            cwd=root,
+            check=False,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
             **user,  # type: ignore[call-overload]
         )
         shutil.rmtree(root, ignore_errors=True)

@@ -141,6 +141,9 @@ class FrameIngest:
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
         own search found (an observation's), kept for sequence scoring."""
+        if self.states.store_kind == PGVECTOR:  # load the atlas (and its table) beforehand
+            with self.sessions() as session:
+                self.states.loaded(self.checked_atlas(session, atlas_name).id)
         with transaction(self.sessions) as session:
             atlas = self.checked_atlas(session, atlas_name)
             submap = repo.get_submap(session, atlas=atlas, name=fields.submap_name)

@@ -232,10 +232,13 @@ class AtlasStates:
         """pgvector: embed a frame and insert its vector in the caller's transaction (which
         holds the atlas row's lock: no activation can commit meanwhile). False, writing
         nothing, when this process serves another version than the active one; the frame is
-        then embedded when the active version is swapped in (:meth:`catch_up`)."""
-        state = self.loaded(atlas_id)
+        then embedded when the active version is swapped in (:meth:`catch_up`), and when the
+        atlas is not loaded (loading creates tables, which would wait for this transaction)."""
+        state = self.current(atlas_id)
+        if state is None or not isinstance(state.index, PgVectorStore):
+            return False
         active = repo.active_model_version(session, atlas_id=atlas_id)
-        if active.version != state.model_version or not isinstance(state.index, PgVectorStore):
+        if active.version != state.model_version:
             return False
         embedding = state.model.embed(features)
         state.index.add(np.array([frame_id]), embedding[None], [robot], session=session)
@@ -243,6 +246,9 @@ class AtlasStates:
 
     def catch_up(self, atlas_id: int) -> None:
         """Follow the database now for one atlas (a frame written around an activation)."""
+        if self.current(atlas_id) is None:
+            self.loaded(atlas_id)  # loading embeds the frames its table lacks
+            return
         with self.sessions() as session:
             revision = change_feed.atlas_revision(session, atlas_id=atlas_id)
         self.follow({atlas_id: revision}, only=atlas_id)

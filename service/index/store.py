@@ -17,9 +17,11 @@ from typing import Protocol
 
 import numpy as np
 from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
 
 from service.index.atlas_index import Hit
-from service.index.pgvector_store import available, ensure_extension
+from service.index.pgvector_store import PgVectorStore, available, ensure_extension
+from service.ml.active_model import ActiveModel
 
 log = logging.getLogger(__name__)
 
@@ -95,3 +97,28 @@ def resolve_kind(setting: str, engine: Engine) -> str:
         return FAISS
     ensure_extension(engine)
     return PGVECTOR
+
+
+def fill_version_table(
+    setting: str,
+    sessions: sessionmaker[Session],
+    atlas_id: int,
+    version: int,
+    model: ActiveModel,
+) -> int | None:
+    """pgvector deployments: embed every stored frame with a new model version's ``model`` into
+    that version's table, beside the active one, before the version is activated; the HNSW
+    index is built after the load (faster than row by row). Replicas then swap heads and table
+    together without embedding anything but the frames added meanwhile. Returns the rows
+    written, or None on FAISS (nothing to do)."""
+    from service.index.builder import add_stored_frames  # the builder imports this module
+
+    if resolve_kind(setting, sessions.kw["bind"]) != PGVECTOR:
+        return None
+    store = PgVectorStore(sessions, atlas_id, version, model.dim)
+    store.create(indexes=False)
+    with sessions() as session:
+        added = add_stored_frames(session, atlas_id, model, store)
+    store.create_indexes()
+    log.info("atlas %d: %d vectors of model version %d in its table", atlas_id, added, version)
+    return added

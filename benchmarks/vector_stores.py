@@ -121,7 +121,9 @@ def measure(
     )
 
 
-def bench_size(n: int, dim: int, queries_n: int, efs: list[int], pg: dict[str, str]) -> list[Row]:
+def bench_size(
+    n: int, dim: int, queries_n: int, efs: list[int], pg: dict[str, str], keep: Path | None
+) -> list[Row]:
     data = ClusteredEmbeddings(n=n, dim=dim)
     ids = np.arange(n, dtype=np.int64)
     vectors = np.concatenate([v for _, v in data.chunks()])
@@ -169,14 +171,18 @@ def bench_size(n: int, dim: int, queries_n: int, efs: list[int], pg: dict[str, s
         )
         print(_format(rows[-1]), flush=True)
 
-    with embedded_postgres(pg) as url:
+    with embedded_postgres(pg, keep=None if keep is None else keep / f"n{n}") as url:
         engine = create_engine(url, pool_size=2)
         ensure_extension(engine)
         sessions = sessionmaker(engine)
+        build_s = float("nan")  # a kept cluster's table and index were built by an earlier run
         for ef in efs:
-            policy = PgVectorPolicy(ef_search=ef, exact_below=1000)
+            policy = PgVectorPolicy(ef_search=ef, filtered_ef_search=ef, exact_below=1000)
             store = PgVectorStore(sessions, 1, 1, dim, policy, linked=False)
-            if ef == efs[0]:
+            with engine.connect() as c:
+                built = c.execute(text("SELECT to_regclass(:i)"), {"i": f"{store.table}_hnsw"})
+                fresh = built.scalar() is None
+            if ef == efs[0] and fresh:
                 store.create(indexes=False)
                 start = time.perf_counter()
                 for s in range(0, n, 100_000):
@@ -250,6 +256,9 @@ def main() -> None:
     parser.add_argument("--maintenance-work-mem", default="3GB")
     parser.add_argument("--threads", type=int, default=1, help="FAISS OpenMP threads")
     parser.add_argument("--json", type=Path, help="append the rows to this JSON-lines file")
+    parser.add_argument(
+        "--keep-pg", type=Path, help="keep PostgreSQL here and reuse its table on the next run"
+    )
     args = parser.parse_args()
     faiss.omp_set_num_threads(args.threads)
     pg = {
@@ -260,7 +269,7 @@ def main() -> None:
     machine = {"machine": platform.processor() or platform.machine(), "python": sys.version[:6]}
     rows: list[Row] = []
     for n in args.sizes:
-        rows.extend(bench_size(n, args.dim, args.queries, args.ef_search, pg))
+        rows.extend(bench_size(n, args.dim, args.queries, args.ef_search, pg, args.keep_pg))
     print("\nstore     size     filter setting                      recall@10 short  p50  p95")
     for row in rows:
         print(_format(row))

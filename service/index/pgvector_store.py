@@ -47,8 +47,10 @@ class PgVectorPolicy:
     Attributes:
         exact_below: atlases with fewer frames (and searches over fewer listed frames) are
             searched exactly.
-        ef_search: HNSW candidate list per query (recall against latency; see
+        ef_search: HNSW candidate list per unfiltered query (recall against latency; see
             benchmarks/RESULTS.md, *Issue 28: vector stores*).
+        filtered_ef_search: the same for a filtered query (robot, frames, time): its nearest
+            allowed frames are further from the query in the graph, so it needs more.
         max_scan_tuples: how far an iterative scan may go before giving up (then exact).
         m, ef_construction: HNSW build parameters.
         size_ttl: seconds the frame count is cached (it only picks exact or HNSW search).
@@ -56,6 +58,7 @@ class PgVectorPolicy:
 
     exact_below: int = 10_000
     ef_search: int = 100
+    filtered_ef_search: int = 400
     max_scan_tuples: int = 50_000
     m: int = 16
     ef_construction: int = 64
@@ -406,13 +409,19 @@ class PgVectorStore:
         params.update(q=_literal(query), k=int(k))
         exact = (include is not None and len(include) <= self.policy.exact_below) or self.exact
         with self.sessions() as session:
-            rows = self._run(session, conditions, params, exact)
+            ef = self.policy.filtered_ef_search if conditions else self.policy.ef_search
+            rows = self._run(session, conditions, params, exact, ef)
             if len(rows) < k and not exact:  # the scan gave up early: ask exactly
-                rows = self._run(session, conditions, params, True)
+                rows = self._run(session, conditions, params, True, ef)
         return [Hit(int(i), -float(d)) for i, d in rows]
 
     def _run(
-        self, session: Session, conditions: list[str], params: dict[str, Any], exact: bool
+        self,
+        session: Session,
+        conditions: list[str],
+        params: dict[str, Any],
+        exact: bool,
+        ef_search: int,
     ) -> list[Any]:
         where_sql = (" WHERE " + " AND ".join(conditions)) if conditions else ""
         distance = f"embedding <#> CAST(:q AS {self.kind})"
@@ -426,7 +435,7 @@ class PgVectorStore:
                     " set_config('hnsw.iterative_scan', 'strict_order', true),"
                     " set_config('hnsw.max_scan_tuples', :mst, true)"
                 ),
-                {"ef": str(max(p.ef_search, int(params["k"]))), "mst": str(p.max_scan_tuples)},
+                {"ef": str(max(ef_search, int(params["k"]))), "mst": str(p.max_scan_tuples)},
             )
         return list(
             session.execute(

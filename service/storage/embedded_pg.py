@@ -31,13 +31,17 @@ def _free_port() -> int:
 
 @contextlib.contextmanager
 def embedded_postgres(
-    settings: dict[str, str] | None = None, *, base_dir: Path | None = None
+    settings: dict[str, str] | None = None, *, keep: Path | None = None
 ) -> Iterator[str]:
     """Start a fresh cluster in a temporary directory; yields its SQLAlchemy URL (database
     ``postgres``, trust auth, 127.0.0.1, a free port); stops it and deletes it on exit.
-    ``settings``: server options (``-c name=value``), e.g. ``maintenance_work_mem``."""
+    ``settings``: server options (``-c name=value``), e.g. ``maintenance_work_mem``.
+    ``keep``: a directory the cluster lives in and stays in (reused when it holds one: a
+    benchmark's 1M-row index is built once)."""
     binaries = _bin()
-    root = Path(tempfile.mkdtemp(prefix="loopnet-pg-", dir=base_dir))
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+    root = keep if keep is not None else Path(tempfile.mkdtemp(prefix="loopnet-pg-"))
     data = root / "data"
     as_root = os.geteuid() == 0
     user: dict[str, object] = {}
@@ -48,23 +52,11 @@ def embedded_postgres(
     options = f"-h 127.0.0.1 -p {port} -k {root}"
     for name, value in (settings or {}).items():
         options += f" -c {name}={value}"
-    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE, "check": True}
+    quiet: dict[str, object] = {"stdout": subprocess.DEVNULL, "stderr": subprocess.PIPE}
+    quiet["check"] = True
     try:
-        subprocess.run(
-            [
-                str(binaries / "initdb"),
-                "-D",
-                str(data),
-                "-U",
-                "postgres",
-                "--auth=trust",
-                "--encoding=utf8",
-                "--no-sync",
-            ],
-            cwd=root,
-            **user,
-            **quiet,  # type: ignore[call-overload]
-        )
+        if not (data / "PG_VERSION").is_file():  # else a kept cluster, started again
+            _initdb(binaries, data, root, user, quiet)
         subprocess.run(
             [
                 str(binaries / "pg_ctl"),
@@ -86,7 +78,8 @@ def embedded_postgres(
     except (subprocess.CalledProcessError, OSError) as exc:
         log = root / "log"
         detail = log.read_text()[-2000:] if log.is_file() else ""
-        shutil.rmtree(root, ignore_errors=True)
+        if keep is None:
+            shutil.rmtree(root, ignore_errors=True)
         stderr = getattr(exc, "stderr", b"") or b""
         raise RuntimeError(f"embedded PostgreSQL did not start: {exc} {stderr!r} {detail}") from exc
     try:
@@ -100,4 +93,17 @@ def embedded_postgres(
             stderr=subprocess.DEVNULL,
             **user,  # type: ignore[call-overload]
         )
-        shutil.rmtree(root, ignore_errors=True)
+        if keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+def _initdb(
+    binaries: Path, data: Path, root: Path, user: dict[str, object], quiet: dict[str, object]
+) -> None:
+    subprocess.run(
+        [str(binaries / "initdb"), "-D", str(data), "-U", "postgres", "--auth=trust"]
+        + ["--encoding=utf8", "--no-sync"],
+        cwd=root,
+        **user,
+        **quiet,  # type: ignore[call-overload]
+    )

@@ -23,20 +23,40 @@ Vectors are ``vector(d)`` (float32), or ``halfvec(d)`` above 2000 dimensions (HN
 from __future__ import annotations
 
 import contextlib
-import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Engine, text
+from sqlalchemy import text
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.index.atlas_index import Hit
-from service.index.pg_copy import copy_rows
+from service.index.pg_copy import copy_rows, insert_rows
+from service.index.pgvector_sql import (
+    VectorFilter,
+    available,
+    drop_atlas_tables,
+    ensure_extension,
+    literal,
+    parse,
+    table_name,
+    where_clauses,
+)
+
+__all__ = [
+    "PgVectorPolicy",
+    "PgVectorStore",
+    "VectorFilter",
+    "available",
+    "drop_atlas_tables",
+    "ensure_extension",
+    "table_name",
+]
 
 JOURNAL_KEPT = 1024
+ESTIMATED_ABOVE = 100_000  # tables larger than this are sized by the planner's estimate
 HALFVEC_ABOVE = 2000  # HNSW indexes vector(d) up to 2,000 dimensions, halfvec(d) up to 4,000
 
 
@@ -63,49 +83,6 @@ class PgVectorPolicy:
     m: int = 16
     ef_construction: int = 64
     size_ttl: float = 5.0
-
-
-@dataclass(frozen=True)
-class VectorFilter:
-    """Restrictions the store applies in SQL: one robot's frames (or all but one robot's),
-    one submap, a capture-time window."""
-
-    robot_id: str | None = None
-    other_robots: bool = False  # True: every robot but ``robot_id``
-    submap_id: int | None = None
-    since: float | None = None
-    until: float | None = None
-
-
-def table_name(atlas_id: int, version: int) -> str:
-    return f"loopnet_vectors_a{int(atlas_id)}_v{int(version)}"
-
-
-def available(engine: Engine) -> bool:
-    """Whether ``engine`` is PostgreSQL with pgvector installed or installable."""
-    if engine.dialect.name != "postgresql":
-        return False
-    with engine.connect() as connection:
-        found = connection.execute(
-            text("SELECT 1 FROM pg_available_extensions WHERE name = 'vector'")
-        ).first()
-    return found is not None
-
-
-def ensure_extension(engine: Engine) -> None:
-    with engine.begin() as connection:
-        connection.execute(text("CREATE EXTENSION IF NOT EXISTS vector"))
-
-
-def drop_atlas_tables(session: Session, atlas_id: int) -> None:
-    """Drop every version's table of an atlas (the atlas is being deleted)."""
-    pattern = f"loopnet_vectors_a{int(atlas_id)}_v%"
-    names = session.scalars(
-        text("SELECT tablename FROM pg_tables WHERE tablename LIKE :p"), {"p": pattern}
-    ).all()
-    for name in names:
-        if re.fullmatch(r"loopnet_vectors_a\d+_v\d+", name):
-            session.execute(text(f'DROP TABLE IF EXISTS "{name}"'))
 
 
 class PgVectorStore:
@@ -196,63 +173,20 @@ class PgVectorStore:
         if len(ids) == 0:
             return 0
         with self._transaction(session) as s:
-            added = self._insert(s, ids, vectors, robots, times, submaps)
+            added = insert_rows(
+                s,
+                self.table,
+                self.kind,
+                self.dim,
+                self.linked,
+                ids,
+                vectors,
+                robots,
+                times,
+                submaps,
+            )
         self._counted(added, 1, ids, vectors)
         return added
-
-    def _insert(
-        self,
-        session: Session,
-        ids: np.ndarray,
-        vectors: np.ndarray,
-        robots: list[str],
-        times: np.ndarray | None,
-        submaps: np.ndarray | None,
-    ) -> int:
-        if len(ids) <= 16:  # a frame's ingest: plain INSERTs, no temporary table
-            rows = [
-                {"id": int(i), "r": robots[n], "e": _literal(vectors[n])} for n, i in enumerate(ids)
-            ]
-            source = (
-                f"SELECT f.id, f.robot_id, f.submap_id, f.timestamp, CAST(:e AS {self.kind})"
-                " FROM frames f WHERE f.id = :id"
-                if self.linked
-                else f"SELECT :id, :r, NULL, NULL, CAST(:e AS {self.kind})"
-            )
-            total = 0
-            for row in rows:
-                result = session.execute(
-                    text(
-                        f"INSERT INTO {self.table} (frame_id, robot_id, submap_id, ts, embedding)"
-                        f" {source} ON CONFLICT (frame_id) DO NOTHING"
-                    ),
-                    row,
-                )
-                total += int(getattr(result, "rowcount", 0) or 0)
-            return total
-        stage = f"{self.table}_stage"
-        session.execute(
-            text(
-                f"CREATE TEMPORARY TABLE IF NOT EXISTS {stage} (frame_id integer, robot_id text,"
-                f" submap_id integer, ts double precision, embedding {self.kind}({self.dim}))"
-                " ON COMMIT DELETE ROWS"
-            )
-        )
-        session.execute(text(f"TRUNCATE {stage}"))
-        copy_rows(session, stage, self.kind, ids, vectors, robots, times, submaps)
-        select = (
-            f"SELECT s.frame_id, f.robot_id, f.submap_id, f.timestamp, s.embedding FROM {stage} s"
-            " JOIN frames f ON f.id = s.frame_id"
-            if self.linked
-            else f"SELECT frame_id, robot_id, submap_id, ts, embedding FROM {stage}"
-        )
-        result = session.execute(
-            text(
-                f"INSERT INTO {self.table} (frame_id, robot_id, submap_id, ts, embedding)"
-                f" {select} ON CONFLICT (frame_id) DO NOTHING"
-            )
-        )
-        return int(getattr(result, "rowcount", 0) or 0)
 
     def load(
         self,
@@ -324,11 +258,21 @@ class PgVectorStore:
     @property
     def size(self) -> int:
         """How many vectors the table holds (cached ``size_ttl`` seconds: other replicas'
-        adds show after that)."""
+        adds show after that; estimated above ``ESTIMATED_ABOVE``)."""
         now = time.monotonic()
         if self._size is None or now - self._size[0] > self.policy.size_ttl:
             with self.sessions() as session:
-                count = int(session.scalar(text(f"SELECT count(*) FROM {self.table}")) or 0)
+                # a large table's planner estimate (kept by autovacuum and index builds) is
+                # close enough for what size decides; counting 1M rows is not free
+                count = int(
+                    session.scalar(
+                        text("SELECT reltuples FROM pg_class WHERE oid = to_regclass(:t)"),
+                        {"t": self.table},
+                    )
+                    or 0
+                )
+                if count < ESTIMATED_ABOVE:
+                    count = int(session.scalar(text(f"SELECT count(*) FROM {self.table}")) or 0)
             self._size = (now, count)
         return self._size[1]
 
@@ -359,7 +303,7 @@ class PgVectorStore:
                 ),
                 {"ids": ids.tolist()},
             ).all()
-        found = {int(i): _parse(e) for i, e in rows}
+        found = {int(i): parse(e) for i, e in rows}
         missing = [int(i) for i in ids if int(i) not in found]
         if missing:
             raise KeyError(f"frames not held: {missing[:5]}")
@@ -405,8 +349,8 @@ class PgVectorStore:
                 exclude = None
             if len(include) == 0:
                 return []
-        conditions, params = _conditions(robot_id, include, exclude, where)
-        params.update(q=_literal(query), k=int(k))
+        conditions, params = where_clauses(robot_id, include, exclude, where)
+        params.update(q=literal(query), k=int(k))
         exact = (include is not None and len(include) <= self.policy.exact_below) or self.exact
         with self.sessions() as session:
             ef = self.policy.filtered_ef_search if conditions else self.policy.ef_search
@@ -464,45 +408,3 @@ class PgVectorStore:
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
         return None  # the table holds them
-
-
-def _conditions(
-    robot_id: str | None,
-    include: np.ndarray | None,
-    exclude: np.ndarray | None,
-    where: VectorFilter | None,
-) -> tuple[list[str], dict[str, Any]]:
-    conditions: list[str] = []
-    params: dict[str, Any] = {}
-    if robot_id is not None:
-        conditions.append("robot_id = :robot")
-        params["robot"] = robot_id
-    if include is not None:
-        conditions.append("frame_id = ANY(:include)")
-        params["include"] = include.tolist()
-    if exclude is not None and len(exclude):
-        conditions.append("NOT (frame_id = ANY(:exclude))")
-        params["exclude"] = np.asarray(exclude, dtype=np.int64).tolist()
-    if where is not None:
-        if where.robot_id is not None:
-            conditions.append("robot_id <> :wrobot" if where.other_robots else "robot_id = :wrobot")
-            params["wrobot"] = where.robot_id
-        if where.submap_id is not None:
-            conditions.append("submap_id = :submap")
-            params["submap"] = where.submap_id
-        if where.since is not None:
-            conditions.append("ts >= :since")
-            params["since"] = where.since
-        if where.until is not None:
-            conditions.append("ts <= :until")
-            params["until"] = where.until
-    return conditions, params
-
-
-def _literal(vector: np.ndarray) -> str:
-    """pgvector's text form of a vector: ``[x,y,...]`` (float32 round-trips with 9 digits)."""
-    return "[" + ",".join(f"{x:.9g}" for x in vector.tolist()) + "]"
-
-
-def _parse(literal: str) -> np.ndarray:
-    return np.array(literal.strip("[]").split(","), dtype=np.float32)

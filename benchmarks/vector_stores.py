@@ -121,25 +121,18 @@ def measure(
     )
 
 
-def bench_size(
-    n: int, dim: int, queries_n: int, efs: list[int], pg: dict[str, str], keep: Path | None
+def bench_faiss(
+    n: int,
+    dim: int,
+    ids: np.ndarray,
+    vectors: np.ndarray,
+    robots: list[str],
+    filters: dict[str, Any],
+    queries: np.ndarray,
+    exact: dict[str, np.ndarray],
 ) -> list[Row]:
-    data = ClusteredEmbeddings(n=n, dim=dim)
-    ids = np.arange(n, dtype=np.int64)
-    vectors = np.concatenate([v for _, v in data.chunks()])
-    robots = robots_of(ids)
-    robot_codes = (ids // RUN) % ROBOTS
-    times = ids * STEP_S
-    queries = data.queries(queries_n)[1]
-    lo, hi = 0.45 * n * STEP_S, 0.55 * n * STEP_S
-    filters = {
-        "all": (np.ones(n, bool), None, None),
-        "robot": (robot_codes == 3, VectorFilter(robot_id="r3"), None),
-        "window": ((times >= lo) & (times <= hi), VectorFilter(since=lo, until=hi), None),
-    }
-    exact = {name: exact_top_k(vectors, mask, queries) for name, (mask, _, _) in filters.items()}
+    """The service's AtlasIndex, filled as ``add_stored_frames`` fills an empty one."""
     rows: list[Row] = []
-
     start = time.perf_counter()
     index = AtlasIndex(dim)
     with index.bulk():
@@ -171,6 +164,38 @@ def bench_size(
         )
         print(_format(rows[-1]), flush=True)
 
+    return rows
+
+
+def bench_size(
+    n: int,
+    dim: int,
+    queries_n: int,
+    efs: list[int],
+    pg: dict[str, str],
+    keep: Path | None,
+    stores: list[str],
+) -> list[Row]:
+    data = ClusteredEmbeddings(n=n, dim=dim)
+    ids = np.arange(n, dtype=np.int64)
+    vectors = np.concatenate([v for _, v in data.chunks()])
+    robots = robots_of(ids)
+    robot_codes = (ids // RUN) % ROBOTS
+    times = ids * STEP_S
+    queries = data.queries(queries_n)[1]
+    lo, hi = 0.45 * n * STEP_S, 0.55 * n * STEP_S
+    filters = {
+        "all": (np.ones(n, bool), None, None),
+        "robot": (robot_codes == 3, VectorFilter(robot_id="r3"), None),
+        "window": ((times >= lo) & (times <= hi), VectorFilter(since=lo, until=hi), None),
+    }
+    exact = {name: exact_top_k(vectors, mask, queries) for name, (mask, _, _) in filters.items()}
+    rows: list[Row] = []
+
+    if "faiss" in stores:
+        rows.extend(bench_faiss(n, dim, ids, vectors, robots, filters, queries, exact))
+    if "pgvector" not in stores:
+        return rows
     with embedded_postgres(pg, keep=None if keep is None else keep / f"n{n}") as url:
         engine = create_engine(url, pool_size=2)
         ensure_extension(engine)
@@ -256,6 +281,7 @@ def main() -> None:
     parser.add_argument("--maintenance-work-mem", default="3GB")
     parser.add_argument("--threads", type=int, default=1, help="FAISS OpenMP threads")
     parser.add_argument("--json", type=Path, help="append the rows to this JSON-lines file")
+    parser.add_argument("--stores", nargs="+", default=["faiss", "pgvector"])
     parser.add_argument(
         "--keep-pg", type=Path, help="keep PostgreSQL here and reuse its table on the next run"
     )
@@ -269,7 +295,9 @@ def main() -> None:
     machine = {"machine": platform.processor() or platform.machine(), "python": sys.version[:6]}
     rows: list[Row] = []
     for n in args.sizes:
-        rows.extend(bench_size(n, args.dim, args.queries, args.ef_search, pg, args.keep_pg))
+        rows.extend(
+            bench_size(n, args.dim, args.queries, args.ef_search, pg, args.keep_pg, args.stores)
+        )
     print("\nstore     size     filter setting                      recall@10 short  p50  p95")
     for row in rows:
         print(_format(row))

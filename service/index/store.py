@@ -17,6 +17,7 @@ from typing import Protocol
 
 import numpy as np
 from sqlalchemy import Engine
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.index.atlas_index import Hit
@@ -95,7 +96,13 @@ def resolve_kind(setting: str, engine: Engine) -> str:
         )
     if not usable:
         return FAISS
-    ensure_extension(engine)
+    try:
+        ensure_extension(engine)
+    except SQLAlchemyError as exc:  # available but not ours to create (no privilege)
+        if setting == PGVECTOR:
+            raise RuntimeError(f"cannot create the vector extension: {exc}") from exc
+        log.warning("pgvector is available but the extension cannot be created (%s); FAISS", exc)
+        return FAISS
     return PGVECTOR
 
 

@@ -9,9 +9,13 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select, text
 
 from service.api.app import create_app
+from service.atlas import model_versions as models_store
 from service.index.pgvector_store import PgVectorStore
-from service.storage.models import AtlasChange
+from service.index.store import fill_version_table
+from service.ml.active_model import ActiveModel
+from service.storage.models import AtlasChange, ModelVersion
 from tests.api.helpers import add_frame, create_atlas
+from tests.atlas.test_change_feed import add_untrained_version, within
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 
 
@@ -57,4 +61,21 @@ def test_pgvector_service_end_to_end(tmp_path: Path, pgvector_url: str, pipeline
     service = client.app.state.runtime.service  # type: ignore[attr-defined]
     assert service.rebuild_index("campus") == 4  # the table dropped, re-embedded
     assert best(client, gardens_point_day_night(1, "ref")) == before
+
+    # a new version's vectors are written beside the active ones, then switched to at once
+    version = add_untrained_version(client)
+    model = ActiveModel(models_store.load_heads(version_row(service, version), tmp_path), None)
+    assert fill_version_table("pgvector", service.sessions, 1, version, model) == 4
+    assert client.post(f"/v1/atlases/campus/models/{version}/activate").status_code == 200
+    within(10, lambda: service.states.current(1).model_version == version)
+    swapped = service.states.current(1)
+    assert swapped.index.table.endswith(f"_v{version}") and swapped.index.size == 4
+    assert best(client, gardens_point_day_night(1, "ref"))[0] == ids[1]
     client.__exit__(None, None, None)
+
+
+def version_row(service, version: int):  # type: ignore[no-untyped-def]
+    with service.sessions() as session:
+        row = session.scalar(select(ModelVersion).where(ModelVersion.version == version))
+        session.expunge(row)
+        return row

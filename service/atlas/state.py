@@ -262,8 +262,11 @@ class AtlasStates:
                 self.save_index(state)
 
     def drop_from_index(self, atlas_id: int, frame_ids: list[int], revision: int) -> None:
-        if self.store_kind == PGVECTOR:
-            return  # the rows went with their frames, in the same transaction
+        if self.store_kind == PGVECTOR:  # the rows went with their frames, in that transaction
+            state = self.current(atlas_id)
+            if state is not None and isinstance(state.index, PgVectorStore):
+                state.index.journal_removal(np.array(frame_ids, np.int64))  # caches follow
+            return
         with self.lock(atlas_id):
             state = self.current(atlas_id)
             if state is not None and state.revision < revision:

@@ -213,6 +213,11 @@ class PgVectorStore:
         self._counted(-removed, -1, ids, None)
         return removed
 
+    def journal_removal(self, ids: np.ndarray) -> None:
+        """Note frames whose rows their deletion took (``ON DELETE CASCADE``), for the caches
+        that follow :meth:`changes_since`."""
+        self._counted(-len(ids), -1, np.asarray(ids, dtype=np.int64), None)
+
     @contextlib.contextmanager
     def _transaction(self, session: Session | None) -> Iterator[Session]:
         if session is not None:

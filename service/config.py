@@ -273,6 +273,14 @@ class Settings(BaseSettings):
         description="How often each API process applies the frames added or deleted and the "
         "model versions activated through any process: the bound on cross-process delay.",
     )
+    vector_store: Literal["auto", "faiss", "pgvector"] = Field(
+        "auto",
+        description="Where the atlases' embeddings are searched: 'faiss' (an in-process index "
+        "per atlas, kept in step by the change feed: one machine), 'pgvector' (a table per "
+        "atlas and model version in the PostgreSQL database itself, written in each frame's "
+        "transaction and searched by every replica; needs the vector extension), 'auto' "
+        "(pgvector when the database is PostgreSQL with the extension available, else faiss).",
+    )
     change_retention_seconds: float = Field(
         3600.0,
         ge=60,

@@ -25,6 +25,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
         "redis_url",
         "queue_name",
         "sync_seconds",
+        "vector_store",
         "change_retention_seconds",
         "model_poll_seconds",
     ),

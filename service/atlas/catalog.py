@@ -29,6 +29,8 @@ from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification, verification_config
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
+from service.index.pgvector_store import drop_atlas_tables
+from service.index.store import PGVECTOR
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics
 from service.ml.pipeline import FeaturePipeline
@@ -115,6 +117,8 @@ class AtlasService:
             atlas = repo.get_atlas(session, name=name)
             atlas_id = atlas.id
             session.delete(atlas)
+            if self.states.store_kind == PGVECTOR:  # its vector tables go in the same commit
+                drop_atlas_tables(session, atlas_id)
         self.states.forget(atlas_id)
         models_store.remove_atlas_files(self.settings.index_dir, self.settings.models_dir, atlas_id)
 

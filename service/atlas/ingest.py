@@ -22,6 +22,7 @@ from service.atlas.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
+from service.index.store import PGVECTOR
 from service.metrics import observe_stages
 from service.ml.decode_memory import DecodeBudget
 from service.ml.features import FrameFeatures
@@ -140,6 +141,9 @@ class FrameIngest:
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
         own search found (an observation's), kept for sequence scoring."""
+        if self.states.store_kind == PGVECTOR:  # load the atlas (and its table) beforehand
+            with self.sessions() as session:
+                self.states.loaded(self.checked_atlas(session, atlas_name).id)
         with transaction(self.sessions) as session:
             atlas = self.checked_atlas(session, atlas_name)
             submap = repo.get_submap(session, atlas=atlas, name=fields.submap_name)
@@ -154,13 +158,25 @@ class FrameIngest:
                 features=features,
                 proposals=proposals,
             )
-            revision = change_feed.record(
-                session, atlas_id=atlas.id, op=change_feed.ADD, frame_ids=[frame.id]
+            in_table = self.states.store_kind == PGVECTOR
+            revision = change_feed.record(  # pgvector: the feed only orders (no frame rows)
+                session,
+                atlas_id=atlas.id,
+                op=change_feed.ADD,
+                frame_ids=[] if in_table else [frame.id],
             )
+            if in_table:  # the vector commits with its frame: every replica finds it then
+                written = self.states.write_vector(
+                    session, atlas.id, frame.id, features, fields.robot_id
+                )
             calibration = calibration_due(session, self.settings, atlas.id)
             job_id = calibration.id if calibration is not None else None
         if job_id is not None:
             self._enqueue_calibration(job_id)
+        if in_table:
+            if not written:  # a version activated meanwhile: embed under it now
+                self.states.catch_up(frame.atlas_id)
+            return frame
         with self.states.lock(frame.atlas_id):
             state = self.states.loaded(frame.atlas_id)
             if state.revision < revision:  # else the change feed has handled it already

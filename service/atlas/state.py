@@ -20,8 +20,11 @@ from service.config import Settings
 from service.errors import AtlasUnavailable, NotFound
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames
+from service.index.pgvector_store import PgVectorStore
+from service.index.store import PGVECTOR, VectorStore, resolve_kind
 from service.ml.active_model import ActiveModel
 from service.ml.calibration import Calibration
+from service.ml.features import FrameFeatures
 from service.ml.heads import LoopNetHeads
 from service.storage import repository as repo
 from service.storage.models import ModelVersion
@@ -37,7 +40,7 @@ class LoadedAtlas:
     atlas_id: int
     model_version: int
     heads: LoopNetHeads
-    index: AtlasIndex
+    index: VectorStore
     dirty: bool = False
     revision: int = 0  # the atlas revision the index reflects (see service/atlas/change_feed.py)
     calibration: Calibration | None = None
@@ -61,6 +64,8 @@ class AtlasStates:
         self._atlas_locks: dict[int, threading.RLock] = {}
         # Atlases that failed to load: they answer 503 while the others serve.
         self.broken = BrokenAtlases(max(settings.model_poll_seconds, 1.0), settings.data_dir)
+        # faiss (in-process indexes) or pgvector (tables in the database: no copy to follow)
+        self.store_kind = resolve_kind(settings.vector_store, sessions.kw["bind"])
 
     def load_all(self) -> None:
         """Load heads and reconcile the index of every atlas (at start-up); an atlas that
@@ -148,8 +153,10 @@ class AtlasStates:
             revision = change_feed.atlas_revision(session, atlas_id=atlas_id)
             robot_of = repo.frame_ids_and_robots(session, atlas_id=atlas_id)
             path = self.index_path(atlas_id, version.version)
-            index = None
-            if path.is_file():
+            index: VectorStore | None = None
+            if self.store_kind == PGVECTOR:
+                index = self.table(atlas_id, version.version, heads.config.fused_dim)
+            elif path.is_file():
                 try:
                     index = AtlasIndex.load(path, heads.config.fused_dim)
                 except Exception as exc:  # a corrupt cache is rebuilt, never trusted
@@ -168,8 +175,23 @@ class AtlasStates:
             self._reconcile(session, state, robot_of)
         return state
 
+    def table(self, atlas_id: int, version: int, dim: int) -> PgVectorStore:
+        """The pgvector table of an atlas's model version (created if missing)."""
+        store = PgVectorStore(self.sessions, atlas_id, version, dim)
+        store.create()
+        return store
+
     def _reconcile(self, session: Session, state: LoadedAtlas, robot_of: dict[int, str]) -> None:
-        """Make the index hold exactly the database's frames: drop extras, embed missing ones."""
+        """Make the index hold exactly the database's frames: drop extras, embed missing ones.
+        (A pgvector table cannot hold extras: its rows go with their frames.)"""
+        if isinstance(state.index, PgVectorStore):
+            missing = state.index.missing_frames(session)
+            add_stored_frames(session, state.atlas_id, state.model, state.index, frame_ids=missing)
+            if missing:
+                log.info(
+                    "atlas %d: %d frames embedded into its table", state.atlas_id, len(missing)
+                )
+            return
         in_index = set(state.index.ids().tolist())
         in_db = set(robot_of)
         extra = np.array(sorted(in_index - in_db), np.int64)
@@ -193,13 +215,43 @@ class AtlasStates:
             with self.sessions() as session:
                 version = repo.active_model_version(session, atlas_id=atlas_id)
             self.index_path(atlas_id, version.version).unlink(missing_ok=True)
+            if self.store_kind == PGVECTOR:
+                PgVectorStore(self.sessions, atlas_id, version.version, 1).drop()
             state = self.loaded(atlas_id)
             self.save_index(state)
             return state.index.size
 
     def save_index(self, state: LoadedAtlas) -> None:
-        state.index.save(self.index_path(state.atlas_id, state.model_version))
+        if isinstance(state.index, AtlasIndex):  # a table needs no file
+            state.index.save(self.index_path(state.atlas_id, state.model_version))
         state.dirty = False
+
+    def write_vector(
+        self, session: Session, atlas_id: int, frame_id: int, features: FrameFeatures, robot: str
+    ) -> bool:
+        """pgvector: embed a frame and insert its vector in the caller's transaction (which
+        holds the atlas row's lock: no activation can commit meanwhile). False, writing
+        nothing, when this process serves another version than the active one; the frame is
+        then embedded when the active version is swapped in (:meth:`catch_up`), and when the
+        atlas is not loaded (loading creates tables, which would wait for this transaction)."""
+        state = self.current(atlas_id)
+        if state is None or not isinstance(state.index, PgVectorStore):
+            return False
+        active = repo.active_model_version(session, atlas_id=atlas_id)
+        if active.version != state.model_version:
+            return False
+        embedding = state.model.embed(features)
+        state.index.add(np.array([frame_id]), embedding[None], [robot], session=session)
+        return True
+
+    def catch_up(self, atlas_id: int) -> None:
+        """Follow the database now for one atlas (a frame written around an activation)."""
+        if self.current(atlas_id) is None:
+            self.loaded(atlas_id)  # loading embeds the frames its table lacks
+            return
+        with self.sessions() as session:
+            revision = change_feed.atlas_revision(session, atlas_id=atlas_id)
+        self.follow({atlas_id: revision}, only=atlas_id)
 
     def flush(self) -> None:
         """Write every changed index to disk (at shutdown; a crash is caught up at start)."""
@@ -210,21 +262,27 @@ class AtlasStates:
                 self.save_index(state)
 
     def drop_from_index(self, atlas_id: int, frame_ids: list[int], revision: int) -> None:
+        if self.store_kind == PGVECTOR:  # the rows went with their frames, in that transaction
+            state = self.current(atlas_id)
+            if state is not None and isinstance(state.index, PgVectorStore):
+                state.index.journal_removal(np.array(frame_ids, np.int64))  # caches follow
+            return
         with self.lock(atlas_id):
             state = self.current(atlas_id)
             if state is not None and state.revision < revision:
                 state.index.remove(np.array(frame_ids, np.int64))
                 state.dirty = True
 
-    def follow(self, revisions: dict[int, int]) -> None:
+    def follow(self, revisions: dict[int, int], *, only: int | None = None) -> None:
         """Catch the loaded atlases up with the database (``revisions``: atlas id -> current).
 
         Called by the :class:`~service.atlas.change_feed.ChangeFollower` thread: applies the
         frames other processes added or removed, swaps in a newly activated model version, and
-        forgets atlases deleted elsewhere.
+        forgets atlases deleted elsewhere. With pgvector only the activations matter: the
+        frames are in the shared tables already. ``only``: that atlas alone.
         """
         with self._loaded_lock:
-            loaded_ids = list(self.loaded_states)
+            loaded_ids = [i for i in self.loaded_states if only is None or i == only]
         for atlas_id in loaded_ids:
             if atlas_id not in revisions:
                 self.forget(atlas_id)
@@ -236,6 +294,12 @@ class AtlasStates:
                     continue
                 upto = revisions[atlas_id]
                 with self.sessions() as session:
+                    if isinstance(state.index, PgVectorStore):
+                        if not self._serves_active(session, state):
+                            self._swap(state)
+                        else:
+                            state.revision = upto
+                        continue
                     changes = change_feed.changes_between(
                         session, atlas_id=atlas_id, after=state.revision, upto=upto
                     )

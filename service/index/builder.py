@@ -11,7 +11,7 @@ from typing import TypeVar
 import numpy as np
 from sqlalchemy.orm import Session
 
-from service.index import AtlasIndex
+from service.index.store import VectorStore
 from service.ml.active_model import ActiveModel
 from service.ml.calibration import Calibration
 from service.ml.pipeline import embed_vectors
@@ -71,7 +71,7 @@ def add_stored_frames(
     session: Session,
     atlas_id: int,
     model: ActiveModel,
-    index: AtlasIndex,
+    index: VectorStore,
     *,
     frame_ids: Sequence[int] | None = None,
     progress: Callable[[int], None] | None = None,
@@ -98,7 +98,7 @@ def add_stored_frames(
 
 
 def fill_index(
-    index: AtlasIndex,
+    index: VectorStore,
     embedded: Callable[[Sequence[int] | None], Iterator[Batch]],
     frame_ids: Sequence[int] | None,
     wanted: Callable[[], np.ndarray],
@@ -125,7 +125,7 @@ def fill_index(
 
 
 def _prepare(
-    index: AtlasIndex,
+    index: VectorStore,
     wanted: np.ndarray,
     embedded: Callable[[Sequence[int]], Iterator[Batch]],
 ) -> None:

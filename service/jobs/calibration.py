@@ -19,6 +19,8 @@ from service.atlas import model_versions as models_store
 from service.atlas.verify import verification_config
 from service.config import Settings
 from service.index import AtlasIndex
+from service.index.store import fill_version_table
+from service.ml.active_model import ActiveModel
 from service.ml.aggregators import AGGREGATORS
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.heads import LoopNetHeads
@@ -86,6 +88,8 @@ def run_calibration(
     index_path = models_store.index_file(runner.settings.index_dir, atlas_id, version)
     files.append(index_path)
     index.save(index_path)
+    model = ActiveModel(heads, calibration)
+    fill_version_table(runner.settings.vector_store, runner.sessions, atlas_id, version, model)
     threshold = None
     if runner.settings.verify_top > 0:
         runner._progress(job_id, 90, "calibrating the minimum inliers on hard impostors")

@@ -28,6 +28,7 @@ from service.atlas import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames, load_model_inputs
+from service.index.store import fill_version_table
 from service.jobs.kinds import KINDS
 from service.ml.active_model import ActiveModel
 from service.ml.adaptation import NoUsefulPairs
@@ -279,6 +280,7 @@ class JobRunner:
         index_path = models_store.index_file(self.settings.index_dir, atlas_id, version)
         files.append(index_path)
         index.save(index_path)
+        fill_version_table(self.settings.vector_store, self.sessions, atlas_id, version, model)
         return {
             "reembed_seconds": round(time.perf_counter() - started, 3),
             "indexed_frames": index.size,

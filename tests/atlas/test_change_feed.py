@@ -63,10 +63,30 @@ def two_apps(
         yield one, two
 
 
+@pytest.fixture(params=["faiss", "pgvector"])
+def two_apps_each_store(
+    request: pytest.FixtureRequest, tmp_path: Path, pipeline
+) -> Iterator[tuple[TestClient, TestClient]]:  # type: ignore[no-untyped-def]
+    """Two apps on one PostgreSQL database, with each vector store: FAISS (the machine's
+    PostgreSQL) and pgvector (the embedded one, see tests/services.py)."""
+    store = request.param
+    url = request.getfixturevalue("postgres_url" if store == "faiss" else "pgvector_url")
+    settings = make_settings(
+        tmp_path / "data", database_url=url, sync_seconds=SYNC_SECONDS, vector_store=store
+    )
+    with (
+        TestClient(create_app(settings, pipeline=pipeline)) as one,
+        TestClient(create_app(settings, pipeline=pipeline)) as two,
+    ):
+        wait_ready(one)
+        wait_ready(two)
+        yield one, two
+
+
 def test_frames_and_deletions_reach_the_other_process(
-    two_apps: tuple[TestClient, TestClient],
+    two_apps_each_store: tuple[TestClient, TestClient],
 ) -> None:
-    one, two = two_apps
+    one, two = two_apps_each_store
     create_atlas(one, submaps=("s0", "s1"))
     assert indexed(two) == set()
     frames = [
@@ -190,11 +210,11 @@ def serving(client: TestClient, atlas_id: int) -> int | None:
 
 
 def test_an_activation_reaches_every_process_through_its_follower(
-    two_apps: tuple[TestClient, TestClient],
+    two_apps_each_store: tuple[TestClient, TestClient],
 ) -> None:
     """Activating a version (API, then the offline CLI path for the rollback) is swapped in by
     each process's follower thread: an idle atlas too, and no request ever loads a model."""
-    one, two = two_apps
+    one, two = two_apps_each_store
     create_atlas(one)
     create_atlas(one, "idle")
     frame = add_frame(one, gardens_point_day_night(0, "ref"))["frame_id"]

@@ -45,10 +45,13 @@ def test_compose_file_has_the_fleet_topology() -> None:
             "redis://:${LOOPNET_REDIS_PASSWORD:?set LOOPNET_REDIS_PASSWORD}@redis:6379/0"
         )
         assert env["LOOPNET_DATA_DIR"] == "/data" and env["LOOPNET_AUTH"] == "required"
+        assert env["LOOPNET_VECTOR_STORE"] == "pgvector"
         assert "loopnet-data:/data" in service["volumes"]
         assert service["depends_on"]["postgres"]["condition"] == "service_healthy"
         assert service["depends_on"]["redis"]["condition"] == "service_healthy"
     assert {"loopnet-data", "postgres-data", "redis-data"} <= set(compose["volumes"])
+    # the vectors' engine: pgvector 0.8 (iterative scans), its version pinned
+    assert services["postgres"]["image"] == "pgvector/pgvector:0.8.0-pg17"
 
     # the queue has a password (its clients send it), and the image never starts open
     redis = services["redis"]

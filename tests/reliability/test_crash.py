@@ -25,6 +25,7 @@ from sqlalchemy import func, select
 from benchmarks.load import LiveServer
 from service.atlas.catalog import AtlasService
 from service.index import AtlasIndex
+from service.index.pgvector_store import PgVectorStore
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory
 from service.storage.models import Frame, FrameFeatureRow
@@ -81,10 +82,12 @@ class Robots:
             return set(self.acked)
 
 
-def check_data_dir(data_dir: Path, acked: set[int], pipeline) -> set[int]:  # type: ignore[no-untyped-def]
+def check_data_dir(data_dir: Path, acked: set[int], pipeline, **db: str) -> set[int]:  # type: ignore[no-untyped-def]
     """With the server down: the database and the index built at start-up hold every
-    acknowledged frame, and no frame lacks its features. Returns the database's frame ids."""
-    settings = make_settings(data_dir)
+    acknowledged frame, and no frame lacks its features. Returns the database's frame ids.
+    On pgvector (``db``: its settings) the vector table holds exactly the frames before any
+    process reconciles it: each vector committed with its frame."""
+    settings = make_settings(data_dir, **db)
     engine = make_engine(settings.resolved_database_url)
     sessions = make_session_factory(engine)
     try:
@@ -95,6 +98,10 @@ def check_data_dir(data_dir: Path, acked: set[int], pipeline) -> set[int]:  # ty
             assert session.scalar(select(func.count(Frame.id))) == len(in_db)
         assert acked <= in_db, f"acknowledged frames lost: {sorted(acked - in_db)}"
         assert in_db == with_features, "a frame row without its features (or the reverse)"
+        if db.get("vector_store") == "pgvector":
+            table = PgVectorStore(sessions, atlas_id, 1, pipeline.heads_config().fused_dim)
+            in_table = set(table.ids().tolist())
+            assert in_table == in_db, (sorted(in_db - in_table), sorted(in_table - in_db))
         service = AtlasService(settings, sessions, pipeline)
         indexed = set(service.loaded(atlas_id).index.ids().tolist())
         assert indexed == in_db, (sorted(in_db - indexed), sorted(indexed - in_db))
@@ -104,11 +111,18 @@ def check_data_dir(data_dir: Path, acked: set[int], pipeline) -> set[int]:  # ty
 
 
 @pytest.mark.slow
-def test_sigkill_during_ingest_loses_no_acknowledged_frame(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("store", ["faiss", "pgvector"])
+def test_sigkill_during_ingest_loses_no_acknowledged_frame(
+    tmp_path: Path, pipeline, store: str, request: pytest.FixtureRequest
+) -> None:  # type: ignore[no-untyped-def]
     data_dir = tmp_path / "data"
+    db = {}
+    if store == "pgvector":  # the database outlives the server: its own process
+        db = {"database_url": request.getfixturevalue("pgvector_url"), "vector_store": store}
     env = {
         "LOOPNET_LONG_SIDE": str(TEST_LONG_SIDE),
         "LOOPNET_MAX_KEYPOINTS": str(TEST_MAX_KEYPOINTS),
+        **{f"LOOPNET_{name.upper()}": value for name, value in db.items()},
     }
     server = LiveServer(data_dir, env)
     images = [
@@ -134,7 +148,7 @@ def test_sigkill_during_ingest_loses_no_acknowledged_frame(tmp_path: Path, pipel
             kills += 1
         assert robots.unexpected == []
         acked |= robots.acknowledged()
-        in_db = check_data_dir(data_dir, acked, pipeline)
+        in_db = check_data_dir(data_dir, acked, pipeline, **db)
         print(f"kill {kills}: {len(acked)} acknowledged, {len(in_db)} in the database")
 
     server.start()
@@ -142,6 +156,10 @@ def test_sigkill_during_ingest_loses_no_acknowledged_frame(tmp_path: Path, pipel
         for frame_id in sorted(acked):
             assert client.get(f"/v1/atlases/{ATLAS}/frames/{frame_id}").status_code == 200
     server.stop()  # graceful: the caught-up index is written
+    if store == "pgvector":  # no file: the table is the index
+        check_data_dir(data_dir, acked, pipeline, **db)
+        assert kills == RESTARTS
+        return
     index = AtlasIndex.load(
         data_dir / "indexes" / "atlas-1-v1.faiss", dim=pipeline.heads_config().fused_dim
     )

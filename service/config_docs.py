@@ -15,89 +15,10 @@ from pydantic.fields import FieldInfo
 
 from service.config import Settings
 
-# Every setting belongs to exactly one section (tests/test_config_docs.py checks it).
+# The sections are the classes Settings inherits, in order: each one's docstring is its title.
 SECTIONS: dict[str, tuple[str, ...]] = {
-    "Storage and processes": (
-        "data_dir",
-        "database_url",
-        "host",
-        "port",
-        "redis_url",
-        "queue_name",
-        "sync_seconds",
-        "vector_store",
-        "change_retention_seconds",
-        "model_poll_seconds",
-    ),
-    "Model": (
-        "model_preset",
-        "backbone",
-        "long_side",
-        "max_keypoints",
-        "alpha",
-        "precision",
-        "offline",
-    ),
-    "Decision and verification": (
-        "loop_closure_threshold",
-        "loop_score_min",
-        "matcher",
-        "verify_top",
-        "verify_min_inliers",
-        "verify_ratio",
-        "ransac_threshold_px",
-        "ransac_backend",
-        "exclude_recent_frames",
-        "exclude_recent_seconds",
-    ),
-    "Sequences and consistency": (
-        "sequence_length",
-        "sequence_max_gap_seconds",
-        "sequence_seed_frames",
-        "sequence_margin_min",
-        "consistency_frames",
-    ),
-    "Jobs": (
-        "calibration_milestones",
-        "retrain_activate_worse",
-        "adapt_after_pairs",
-        "job_stale_seconds",
-        "job_requeue_seconds",
-        "job_sweep_seconds",
-    ),
-    "Inference and admission": (
-        "torch_threads",
-        "inference_workers",
-        "inference_queue",
-        "inference_wait_seconds",
-        "batch_window_ms",
-        "max_batch",
-        "parallel_branches",
-    ),
-    "Limits": (
-        "max_upload_bytes",
-        "max_image_pixels",
-        "max_k",
-        "max_snapshot_bytes",
-        "snapshot_max_member_bytes",
-        "snapshot_max_total_bytes",
-    ),
-    "Keys, logs and metrics": (
-        "auth",
-        "auth_failure_limit",
-        "auth_failure_window_seconds",
-        "log_format",
-        "metrics_public",
-    ),
-    "HTTP boundary": (
-        "allowed_hosts",
-        "trusted_proxies",
-        "header_timeout_seconds",
-        "body_timeout_seconds",
-        "keep_alive_seconds",
-        "max_connections",
-        "decode_memory_bytes",
-    ),
+    (section.__doc__ or section.__name__).strip().rstrip("."): tuple(section.__annotations__)
+    for section in Settings.__bases__
 }
 
 HEADER = """\

@@ -161,6 +161,8 @@ FLOORS: dict[str, int] = {
     "concurrency": 1,
     # settings, the database, the vector index, payload formats
     "config": 2,
+    "config_sections": 2,
+    "config_boundary": 2,
     "storage": 2,
     "index": 2,
     "features_payload": 2,

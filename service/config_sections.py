@@ -1,0 +1,248 @@
+"""The settings of what the service does (storage, model, decision, sequences, jobs), one
+class per section of docs/configuration.md; :class:`~service.config.Settings` inherits them
+all, and the page's sections are these classes (their docstrings)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings
+
+
+class StorageSettings(BaseSettings):
+    """Storage and processes."""
+
+    data_dir: Path = Field(
+        Path("./loopnet-data"),
+        description="The database (SQLite by default), FAISS indexes, model versions and the job "
+        "queue; created owner-only (0700), the SQLite files 0600.",
+    )
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy URL of the database, e.g. postgresql+psycopg://user:pass@host/db;"
+        " unset: a SQLite file loopnet.sqlite3 in the data directory.",
+    )
+    host: str = Field("127.0.0.1", description="The address `loopnet serve` listens on.")
+    port: int = Field(8000, ge=1, le=65535, description="The port `loopnet serve` listens on.")
+    redis_url: str | None = Field(
+        None,
+        description="Redis URL of the job queue (fleets: workers on other machines); unset: a "
+        "SQLite queue file queue.sqlite3 in the data directory.",
+    )
+    queue_name: str = Field("loopnet", description="Queue name (Redis key prefix / SQLite table).")
+    sync_seconds: float = Field(
+        1.0,
+        ge=0.05,
+        le=3600,
+        description="How often each API process applies the frames added or deleted and the "
+        "model versions activated through any process: the bound on cross-process delay.",
+    )
+    vector_store: Literal["auto", "faiss", "pgvector"] = Field(
+        "auto",
+        description="Where the atlases' embeddings are searched: 'faiss' (an in-process index "
+        "per atlas, kept in step by the change feed: one machine), 'pgvector' (a table per "
+        "atlas and model version in the PostgreSQL database itself, written in each frame's "
+        "transaction and searched by every replica; needs the vector extension), 'auto' "
+        "(pgvector when the database is PostgreSQL with the extension available, else faiss).",
+    )
+    change_retention_seconds: float = Field(
+        3600.0,
+        ge=60,
+        description="How long the frame change log is kept; a process further behind "
+        "reconciles its whole index instead.",
+    )
+    model_poll_seconds: float = Field(
+        1.0,
+        ge=0.0,
+        description="How long an atlas that failed to load waits before it is tried again "
+        "(a newly activated version arrives through the change feed, every LOOPNET_SYNC_SECONDS).",
+    )
+
+
+class ModelSettings(BaseSettings):
+    """Model."""
+
+    model_preset: str = Field(
+        "default",
+        description="'default' (DISK at 512 px, 1024 keypoints, MobileNetV2 at 224 px), 'fast' "
+        "(XFeat at 320 px, 512 keypoints, MobileNetV2 at 160 px: CPU-only robots and servers) or "
+        "'paper' (DISK at 1024 px, 2048 keypoints, ResNet-18). An atlas keeps the features it was "
+        "built with: a service running other settings answers 409 for it.",
+    )
+    backbone: str | None = Field(
+        None, description="The global backbone, 'mobilenetv2' or 'resnet18'; unset: the preset's."
+    )
+    long_side: int | None = Field(
+        None,
+        ge=32,
+        le=4096,
+        description="The local extractor's working long side in pixels (frames are resized up or "
+        "down to it); unset: the preset's.",
+    )
+    max_keypoints: int | None = Field(
+        None, ge=16, le=16384, description="Keypoints kept per frame (top-n); unset: the preset's."
+    )
+    alpha: float | None = Field(
+        None,
+        ge=0.0,
+        le=1.0,
+        description="Fusion weight of the local branch in the uncalibrated blend an atlas serves "
+        "before its first calibration; unset: the preset's (0.7, the paper's). A calibration "
+        "carries its own (default 0.5, on standardised cosines).",
+    )
+    precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto",
+        description="CNN arithmetic: 'auto' runs DISK in bf16 (bf16 weights, InstanceNorm "
+        "statistics in float32) and re-embedding's products in bf16 where the CPU computes bf16 "
+        "natively (AVX512-BF16 or AMX), fp32 elsewhere; 'fp32' forces float32; 'bf16' forces bf16"
+        " (fails at start on a CPU without it).",
+    )
+    offline: bool = Field(
+        False,
+        description="Never download missing pretrained weights (air-gapped installs); a missing "
+        "file is then an error naming where to put it.",
+    )
+
+
+class DecisionSettings(BaseSettings):
+    """Decision and verification."""
+
+    loop_closure_threshold: float = Field(
+        0.90,
+        ge=-1.0,
+        le=1.0,
+        description="On uncalibrated model versions: the cosine similarity at or above which the "
+        "best match may be a loop closure (it must also be verified).",
+    )
+    loop_score_min: float = Field(
+        2.0,
+        ge=0.0,
+        description="On calibrated model versions: -log10 of the chance that a query with no "
+        "true revisit finds a match this good among the atlas's frames (a match is a loop from "
+        "score >= this + log10(frames), and only once verification agrees).",
+    )
+    matcher: str = Field(
+        "mnn",
+        description="Local-feature matcher of geometric verification: 'mnn' (mutual nearest "
+        "neighbours + ratio test, any extractor), 'lightglue' (LightGlue-DISK, DISK only; seconds "
+        "a candidate on a CPU) or 'auto' (LightGlue for DISK, MNN otherwise).",
+    )
+    verify_top: int = Field(
+        5,
+        ge=0,
+        le=100,
+        description="Best retrieval candidates verified per query (matches + RANSAC); 0 turns "
+        "verification off.",
+    )
+    verify_min_inliers: int | None = Field(
+        None,
+        ge=1,
+        description="RANSAC inliers at or above which a candidate is verified; unset: the "
+        "atlas calibration's (fitted above its hard impostors), else the matcher's own default "
+        "(service.ml.verification.DEFAULT_MIN_INLIERS).",
+    )
+    verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="Lowe's ratio of the MNN matcher.")
+    ransac_threshold_px: float = Field(
+        3.0,
+        gt=0.0,
+        description="RANSAC inlier threshold in pixels of the decoded image (Sampson distance).",
+    )
+    ransac_backend: Literal["batched", "kornia"] = Field(
+        "batched",
+        description="Fundamental-matrix RANSAC of verification: 'batched' (all candidates "
+        "vectorised together in numpy, several times faster) or 'kornia' (kornia's RANSAC, one "
+        "candidate at a time; inlier counts agree within a few). Essential matrices use kornia.",
+    )
+    exclude_recent_frames: int = Field(
+        20,
+        ge=0,
+        description="The asking robot's last N frames never count as a loop closure (per request:"
+        " exclude_recent_frames).",
+    )
+    exclude_recent_seconds: float = Field(
+        30.0,
+        ge=0.0,
+        description="Nor do its frames taken within T seconds of the query's timestamp, or of its"
+        " latest frame's (per request: exclude_recent_seconds).",
+    )
+
+
+class SequenceSettings(BaseSettings):
+    """Sequences and consistency."""
+
+    sequence_length: int = Field(
+        10,
+        ge=0,
+        le=50,
+        description="Default frames of a robot's sequence scored with each query/observe that "
+        "names the robot (SeqSLAM-like; 0: off). A request's sequence_length overrides it.",
+    )
+    sequence_max_gap_seconds: float = Field(
+        10.0,
+        gt=0.0,
+        description="A robot's frames further apart in time than this start a new sequence (so "
+        "does a timestamp going backwards).",
+    )
+    sequence_seed_frames: int = Field(
+        0,
+        ge=0,
+        le=50,
+        description="Frames of a robot's sequence, newest first, whose best matches propose "
+        "places to score (0: all). An observed frame keeps its own search's matches, so it "
+        "proposes without a search; a frame stored without one (POST /frames) costs one index "
+        "search per request.",
+    )
+    sequence_margin_min: float = Field(
+        6.0,
+        ge=0.0,
+        description="A robot's sequence is a loop on its own when its best place's score "
+        "exceeds that of the best rival place (more than 3 frames away along a trajectory, or "
+        "on another) by this many standard deviations and it aligned at least "
+        "consistency_frames frames. 6: the largest margin of a wrong sequence answer on the "
+        "first half of the development sets' queries at L = 10 (5.86, Nordland).",
+    )
+    consistency_frames: int = Field(
+        3,
+        ge=1,
+        le=20,
+        description="Consecutive agreeing observations of a robot before a loop closure is "
+        "accepted (DBoW2's temporal consistency; 1: no check).",
+    )
+
+
+class JobSettings(BaseSettings):
+    """Jobs."""
+
+    calibration_milestones: str = Field(
+        "16,32,64,128,256,512,1024,10000,100000",
+        pattern=r"^\s*(\d+\s*(,\s*\d+\s*)*)?$",
+        description="Frame counts at which an atlas is calibrated automatically (comma-separated;"
+        " empty: never). Doubling from 16 (a calibration beats the uncalibrated blend from a "
+        "dozen frames on, and its whitening keeps at most half the frame count in axes, up to "
+        "512 at 1024 frames), then every tenfold.",
+    )
+    retrain_activate_worse: bool = Field(
+        False,
+        description="Activate a retrained version even when it is worse than the active one on "
+        "the frames it did not train on.",
+    )
+    adapt_after_pairs: int = Field(
+        0,
+        ge=0,
+        description="Queue an adaptation job (kind adapt: learned whitening from revisit pairs) "
+        "once an atlas has collected this many verified revisit pairs since its last one "
+        "(0: never, the default; operators submit adapt jobs themselves).",
+    )
+    job_stale_seconds: float = Field(
+        600.0,
+        gt=0,
+        description="A running job with no progress for this long is failed: its worker died.",
+    )
+    job_requeue_seconds: float = Field(
+        30.0, gt=0, description="A queued job missing from the queue this long is enqueued again."
+    )
+    job_sweep_seconds: float = Field(
+        60.0, gt=0, description="How often each worker looks for lost or orphaned jobs."
+    )

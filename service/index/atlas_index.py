@@ -40,6 +40,7 @@ from service.index.faiss_parts import (
     flat_index,
     id_selector,
     quantizer_name,
+    stored_vectors,
 )
 from service.index.journal import Change, ChangeJournal
 
@@ -340,11 +341,7 @@ class AtlasIndex:
         """
         ids = np.sort(self.ids())
         vectors = self._reconstruct(ids)
-        target = (
-            flat_index(self.dim)
-            if self.policy.wanted_nlist(self.dim, size) is None
-            else self.policy.new_ivf(self.dim, size)
-        )
+        target = self.policy.new_index(self.dim, size)
         self._log = []
         if not self.policy.background:
             self._finish_rebuild(target, ids, vectors)
@@ -356,11 +353,7 @@ class AtlasIndex:
 
     def _finish_rebuild(self, target: Any, ids: np.ndarray, vectors: np.ndarray) -> None:
         try:
-            if not target.is_trained:
-                nlist = faiss.extract_index_ivf(target).nlist
-                target.train(vectors[self.policy.training_rows(ids, nlist)])
-            assigner = assigner_of(target)
-            add_vectors(target, ids, vectors, assigner)
+            assigner = self.policy.fill(target, ids, vectors)
         except Exception:
             log.exception("index rebuild failed; the current index keeps serving")
             with self._lock:
@@ -384,17 +377,9 @@ class AtlasIndex:
         return self._assigner
 
     def _regrow_if_due(self) -> None:
-        """Rebuild when the size calls for another type: exact to inverted file, twice the
-        lists, or exact again once shrunk to half the threshold (so a size near it never
-        flips back and forth)."""
-        ivf, wanted = self._ivf(), self.policy.wanted_nlist(self.dim, self.size)
-        if ivf is None:
-            due = wanted is not None
-        elif wanted is None:
-            due = self.size <= self.policy.flat_max(self.dim) // 2
-        else:
-            due = wanted >= 2 * ivf.nlist
-        if due:
+        """Rebuild when the size calls for another type (:meth:`IndexPolicy.rebuild_due`)."""
+        ivf = self._ivf()
+        if self.policy.rebuild_due(self.dim, self.size, None if ivf is None else ivf.nlist):
             self._start_rebuild(self.size)
 
     def wait_rebuilt(self) -> None:
@@ -404,16 +389,7 @@ class AtlasIndex:
 
     def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
         """The stored vectors of ``ids`` (exact for flat, decoded codes for the inverted file)."""
-        if len(ids) == 0:
-            return np.zeros((0, self.dim), np.float32)
-        ivf = self._ivf()
-        if ivf is None:
-            return self._index.reconstruct_batch(ids)  # type: ignore[no-any-return]
-        ivf.set_direct_map_type(faiss.DirectMap.Hashtable)  # type: ignore[attr-defined]
-        try:
-            return ivf.reconstruct_batch(ids)  # type: ignore[no-any-return]
-        finally:
-            ivf.set_direct_map_type(faiss.DirectMap.NoMap)  # type: ignore[attr-defined]
+        return stored_vectors(self._index, self._ivf(), ids, self.dim)
 
     # ----- files -------------------------------------------------------------------------
 

@@ -83,6 +83,31 @@ class IndexPolicy:
         step = max(1, len(ids) // (self.train_per_list * nlist))
         return np.argsort(ids, kind="stable")[::step]
 
+    def new_index(self, dim: int, size: int) -> Any:
+        """An empty index of the type ``size`` frames call for (the inverted file untrained)."""
+        return flat_index(dim) if self.wanted_nlist(dim, size) is None else self.new_ivf(dim, size)
+
+    def rebuild_due(self, dim: int, size: int, nlist: int | None) -> bool:
+        """Whether an index of ``size`` frames (``nlist`` lists, None: exact) should become
+        another type: exact to inverted file, twice the lists, or exact again once shrunk to
+        half the threshold (so a size near it never flips back and forth)."""
+        wanted = self.wanted_nlist(dim, size)
+        if nlist is None:
+            return wanted is not None
+        if wanted is None:
+            return size <= self.flat_max(dim) // 2
+        return wanted >= 2 * nlist
+
+    def fill(self, target: Any, ids: np.ndarray, vectors: np.ndarray) -> ListAssigner | None:
+        """Train ``target`` if it needs it (on :meth:`training_rows`) and add the vectors to
+        it; returns its list assigner (None for an exact index)."""
+        if not target.is_trained:
+            nlist = faiss.extract_index_ivf(target).nlist
+            target.train(vectors[self.training_rows(ids, nlist)])
+        assigner = assigner_of(target)
+        add_vectors(target, ids, vectors, assigner)
+        return assigner
+
     def new_ivf(self, dim: int, size: int) -> Any:
         """An untrained inverted file for ``size`` frames of ``dim`` values."""
         nlist = ivf_nlist(size, self.lists_per_sqrt)
@@ -134,3 +159,17 @@ def id_selector(include: np.ndarray | None, exclude: np.ndarray | None) -> Any:
         selector.referenced = dropped  # keep the wrapped selector alive
         return selector
     return None
+
+
+def stored_vectors(index: Any, ivf: Any | None, ids: np.ndarray, dim: int) -> np.ndarray:
+    """The stored vectors of ``ids`` in ``index`` (exact for flat, decoded codes for the
+    inverted file ``ivf`` inside it)."""
+    if len(ids) == 0:
+        return np.zeros((0, dim), np.float32)
+    if ivf is None:
+        return index.reconstruct_batch(ids)  # type: ignore[no-any-return]
+    ivf.set_direct_map_type(faiss.DirectMap.Hashtable)  # type: ignore[attr-defined]
+    try:
+        return ivf.reconstruct_batch(ids)  # type: ignore[no-any-return]
+    finally:
+        ivf.set_direct_map_type(faiss.DirectMap.NoMap)  # type: ignore[attr-defined]

@@ -135,7 +135,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_worker(args: argparse.Namespace) -> int:
     from service.config import Settings
-    from service.jobs.worker import run_worker
+    from service.runtime.worker import run_worker
 
     run_worker(Settings(), workers=args.threads)
     return 0

@@ -76,11 +76,13 @@ def _run(action: Any) -> int:
 
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
-    from service.fleet.keys import issue, parse_role
+    from service.fleet.keys import KeyAdmin, parse_role
 
     def action() -> None:
         _, sessions = _sessions()
-        new = issue(sessions, name=args.name, role=parse_role(args.role), atlases=args.atlas)
+        new = KeyAdmin(sessions).issue(
+            name=args.name, role=parse_role(args.role), atlases=args.atlas
+        )
         row = _key_row(new.key)
         print(json.dumps({**row, "token": new.token}, indent=2))
         print("store the token now: it is not shown again", file=sys.stderr)
@@ -89,44 +91,42 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_list(_args: argparse.Namespace) -> int:
-    from service.fleet.keys import listing
+    from service.fleet.keys import KeyAdmin
 
     def action() -> None:
         _, sessions = _sessions()
-        for key in listing(sessions):
+        for key in KeyAdmin(sessions).listing():
             print(json.dumps(_key_row(key)))
 
     return _run(action)
 
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
-    from service.fleet.keys import revoke
+    from service.fleet.keys import KeyAdmin
 
     def action() -> None:
         _, sessions = _sessions()
-        key = revoke(sessions, key_id=args.id)
+        key = KeyAdmin(sessions).revoke(key_id=args.id)
         print(f"key {key.id} ({key.name}) revoked")
 
     return _run(action)
 
 
 def cmd_snapshot_export(args: argparse.Namespace) -> int:
-    from service.fleet.snapshots import export_atlas
+    from service.fleet.snapshot_use_case import Snapshots
 
     def action() -> None:
-        settings, sessions = _sessions()
-        manifest = export_atlas(settings, sessions, args.atlas, args.file)
+        manifest = Snapshots(*_sessions()).export(args.atlas, args.file)
         print(f"{args.file}: {json.dumps(manifest['counts'])}")
 
     return _run(action)
 
 
 def cmd_snapshot_restore(args: argparse.Namespace) -> int:
-    from service.fleet.snapshot_restore import restore_atlas
+    from service.fleet.snapshot_use_case import Snapshots
 
     def action() -> None:
-        settings, sessions = _sessions()
-        name = restore_atlas(settings, sessions, args.file, name=args.name)
+        name = Snapshots(*_sessions()).restore(args.file, name=args.name)
         print(f"restored {args.file} as atlas '{name}'")
 
     return _run(action)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.fleet.snapshot_archive import ArchiveLimits
+from service.domain.limits import ArchiveLimits
 from service.ml.image_limits import ImageLimits
 
 if TYPE_CHECKING:  # the ML modules import torch; the keys and snapshot commands must not

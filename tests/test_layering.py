@@ -147,3 +147,131 @@ def test_the_check_sees_what_it_must(
 ) -> None:
     names = runtime_imports(source, "service.api.routes")
     assert forbidden_in(names, forbidden) is expected
+
+
+# The floor plan, bottom to top: a package imports only packages of its own floor or below.
+FLOORS: dict[str, int] = {
+    # value types and errors, no I/O
+    "domain": 0,
+    "errors": 0,
+    # the models, geometry and process-level plumbing that knows nothing of atlases
+    "ml": 1,
+    "npz_reader": 1,
+    "metrics": 1,
+    "concurrency": 1,
+    # settings, the database, the vector index, payload formats
+    "config": 2,
+    "storage": 2,
+    "index": 2,
+    "features_payload": 2,
+    # the application's use cases
+    "atlas": 3,
+    "jobs": 4,
+    "fleet": 4,
+    # the process and the harness that drives the use cases
+    "runtime": 5,
+    "evaluation": 5,
+    # the HTTP front and its pages
+    "api": 6,
+    "console": 6,
+    # the command line and the tools on top of everything
+    "client": 7,
+    "cli": 7,
+    "cli_atlas": 7,
+    "cli_eval": 7,
+    "cli_fleet": 7,
+    "config_docs": 7,
+}
+
+
+def package_edges() -> dict[str, set[str]]:
+    """Top-level package of ``service`` -> the top-level packages it imports at run time."""
+    edges: dict[str, set[str]] = {}
+    for path in sorted(SERVICE.rglob("*.py")):
+        parts = path.relative_to(SERVICE).with_suffix("").parts
+        if parts == ("__init__",):
+            continue
+        me = parts[0]
+        for name in runtime_imports(path.read_text(), package_of(path)):
+            target = name.split(".")
+            inside = target[0] == "service" and len(target) > 1 and target[1] != me
+            if inside and (
+                (SERVICE / target[1]).is_dir() or (SERVICE / f"{target[1]}.py").exists()
+            ):
+                edges.setdefault(me, set()).add(target[1])
+    return edges
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one package (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for other in edges.get(node, ()):
+            if other not in index:
+                visit(other)
+                low[node] = min(low[node], low[other])
+            elif other in stack:
+                low[node] = min(low[node], index[other])
+        if low[node] == index[node]:
+            group = []
+            while True:
+                member = stack.pop()
+                group.append(member)
+                if member == node:
+                    break
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for node in sorted(edges):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_every_package_has_a_floor() -> None:
+    packages = {
+        p.stem if p.is_file() else p.name
+        for p in SERVICE.iterdir()
+        if (p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").exists()
+    }
+    assert packages - FLOORS.keys() == set()
+
+
+def test_no_package_imports_a_floor_above_it() -> None:
+    upward = sorted(
+        f"{package} (floor {FLOORS[package]}) imports {other} (floor {FLOORS[other]})"
+        for package, others in package_edges().items()
+        for other in others
+        if FLOORS[other] > FLOORS[package]
+    )
+    assert upward == []
+
+
+def test_no_import_cycles_between_packages() -> None:
+    assert cycles(package_edges()) == []
+
+
+def test_the_cycle_check_sees_a_cycle() -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_api_never_handles_sessions_nor_imports_storage() -> None:
+    """The HTTP layer calls use cases (:class:`~service.atlas.catalog.AtlasService`, the
+    runtime's jobs, keys and snapshots); sessions and storage stay beneath them."""
+    files = sorted((SERVICE / "api").rglob("*.py"))
+    touching = sorted(
+        f"{path.relative_to(ROOT)}:{node.lineno}"
+        for path in files
+        for node in ast.walk(ast.parse(path.read_text()))
+        if (isinstance(node, ast.Attribute) and node.attr == "sessions")
+        or (isinstance(node, ast.Name) and node.id == "sessions")
+    )
+    assert touching == []
+    assert violations(files, ("service.storage",)) == []

@@ -7,7 +7,7 @@ import argparse
 import logging
 
 from service.config import Settings
-from service.jobs.worker import run_worker
+from service.runtime.worker import run_worker
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -31,7 +31,6 @@ from service.api.security_headers import SecurityHeaders
 from service.concurrency import default_workers, request_threads
 from service.config import Settings
 from service.console.router import install as install_console
-from service.fleet.keys import Authenticator
 from service.ml.pipeline import FeaturePipeline
 from service.runtime import Runtime
 
@@ -58,8 +57,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         runtime.start(background=background_load)
         _size_thread_pool(runtime.settings)
-        assert runtime.sessions is not None
-        app.state.authenticator = Authenticator(runtime.settings, runtime.sessions)
+        app.state.authenticator = runtime.authenticator
         app.state.authenticator.announce()
         try:
             yield

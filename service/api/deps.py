@@ -7,8 +7,8 @@ from typing import Annotated
 from fastapi import Depends, Path, Request
 
 from service.atlas.catalog import AtlasService
+from service.domain.limits import MAX_ROW_ID
 from service.runtime import Runtime
-from service.storage.models import MAX_ROW_ID
 
 
 def get_runtime(request: Request) -> Runtime:

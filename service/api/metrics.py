@@ -32,7 +32,6 @@ from service.api.auth import (
     key_holder,
 )
 from service.fleet.keys import Principal, Role
-from service.jobs.stats import job_figures
 from service.runtime import Runtime
 
 router = APIRouter(tags=["metrics"])
@@ -54,7 +53,7 @@ class RuntimeCollector(Collector):
         ready = GaugeMetricFamily("loopnet_ready", "1 once models and indexes are loaded.")
         ready.add_metric([], 1.0 if runtime.ready else 0.0)
         yield ready
-        if not runtime.ready or runtime.sessions is None:
+        if not runtime.ready:
             return
         service = runtime.service
         yield from _gate(service.inference.stats())
@@ -67,7 +66,7 @@ class RuntimeCollector(Collector):
         if last_sync is not None:
             age.add_metric([], max(0.0, time.time() - last_sync))
         yield age
-        figures = job_figures(runtime.sessions, RECENT_JOBS)
+        figures = runtime.jobs.figures(RECENT_JOBS)
         jobs = GaugeMetricFamily(
             "loopnet_jobs", "Jobs by kind and state.", labels=["kind", "state"]
         )

@@ -4,13 +4,37 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from datetime import datetime
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.atlas.names import NAME_PATTERN
+from service.domain.statuses import (
+    AggregatorName,
+    CalibrationState,
+    JobKind,
+    JobStatus,
+    PlaceStatus,
+    Role,
+    literal_of,
+)
+from service.ml.calibration_config import CalibrationConfig
 from service.ml.training import TrainingConfig
+
+# The closed sets, inline in the OpenAPI spec (as Literals), defined once in service.domain.
+if TYPE_CHECKING:
+    CalibrationStateValue = str
+    PlaceStatusValue = str
+    JobKindValue = str
+    JobStatusValue = str
+    RoleName = str
+else:
+    CalibrationStateValue = literal_of(CalibrationState)
+    PlaceStatusValue = literal_of(PlaceStatus)
+    JobKindValue = literal_of(JobKind)
+    JobStatusValue = literal_of(JobStatus)
+    RoleName = literal_of(Role)
 
 
 class ErrorOut(BaseModel):
@@ -40,7 +64,7 @@ class AtlasOut(BaseModel):
 
 
 class CalibrationStateOut(BaseModel):
-    state: Literal["uncalibrated", "calibrated"] = Field(
+    state: CalibrationStateValue = Field(
         description="'uncalibrated': the active version embeds with the uncalibrated blend."
     )
     version: int | None = Field(
@@ -193,7 +217,7 @@ class QueryOut(BaseModel):
         "times likelier to pass); null when the model version is not calibrated and the "
         "similarity threshold decided.",
     )
-    status: Literal["loop", "candidate", "new_place"] = Field(
+    status: PlaceStatusValue = Field(
         description="'loop': loop_closure holds and the robot's last consistency_frames "
         "observations agree on one place, or the robot's sequence passed on its own "
         "(sequence.passed); 'candidate': loop_closure holds, not yet consistent; 'new_place': "
@@ -257,17 +281,26 @@ class CalibrateParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    aggregator: Literal["vlad", "mean"] = Field(
-        "vlad", description="How a frame's local descriptors become one vector."
+    aggregator: AggregatorName = Field(
+        CalibrationConfig.aggregator,
+        description="How a frame's local descriptors become one vector.",
     )
-    words: int = Field(64, ge=2, le=1024, description="VLAD vocabulary size.")
-    alpha: float = Field(0.5, ge=0, le=1, description="Weight of the local branch in the fusion.")
+    words: int | None = Field(
+        CalibrationConfig.words,
+        ge=2,
+        le=1024,
+        description="VLAD vocabulary size; null: 16,384 values over the descriptor's length "
+        "(DISK 128 words, XFeat 256), what automatic calibrations and the harness fit.",
+    )
+    alpha: float = Field(
+        CalibrationConfig.alpha, ge=0, le=1, description="Weight of the local branch in the fusion."
+    )
 
 
 class JobIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["retrain", "calibrate"] = Field(
+    kind: JobKindValue = Field(
         "retrain",
         description="'retrain': train the heads (on the latest calibration); 'calibrate': fit "
         "the atlas's calibration (local aggregation, branch whitening, calibrated score) on "
@@ -297,7 +330,7 @@ class JobOut(BaseModel):
     id: int
     atlas: str
     kind: str
-    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    status: JobStatusValue
     progress: float = Field(description="0..100")
     message: str
     params: dict[str, Any]
@@ -315,7 +348,7 @@ class ApiKeyIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=128, examples=["husky-1"])
-    role: Literal["robot", "operator", "admin"]
+    role: RoleName
     atlases: list[str] = Field(
         default_factory=list, description="Atlases the key may use; empty: every atlas."
     )

@@ -14,11 +14,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import change_feed, reads
 from service.atlas import model_versions as models_store
+from service.atlas.browse import Browse
+from service.atlas.closure_matches import ClosureMatches, closure_matches
 from service.atlas.filters import QueryFilter, make_filter
 from service.atlas.ingest import FrameFields, FrameIngest
+from service.atlas.loop_closures import record_if_inter_robot
 from service.atlas.names import validate_name
 from service.atlas.query import AtlasQueries
-from service.atlas.reads import unavailable_atlases
+from service.atlas.reads import Reads
 from service.atlas.results import QueryResult
 from service.atlas.state import AtlasStates, LoadedAtlas
 from service.atlas.verify import CandidateVerification, verification_config
@@ -54,6 +57,8 @@ class AtlasService:
         self.frames = FrameIngest(settings, sessions, pipeline, self.states, self.inference)
         self.verification = CandidateVerification(self.verification_config, self.inference)
         self.queries = AtlasQueries(settings, sessions, self.states, self.frames, self.verification)
+        self.reads = Reads(sessions)
+        self.browse = Browse(sessions)
         # what the follower thread, the tests and the CLI reach through the facade
         self._loaded = self.states.loaded_states
         self.broken = self.states.broken
@@ -116,7 +121,7 @@ class AtlasService:
 
     def unavailable_atlases(self) -> dict[str, str]:
         """Atlas name -> why it cannot be loaded (served with 503 while the others serve)."""
-        return unavailable_atlases(self.sessions, self.states.broken.reasons())
+        return self.reads.unavailable_atlases(self.states.broken.reasons())
 
     def activate_version(self, atlas_name: str, version: int) -> ModelVersion:
         """Make a model version the active one; every process, this one included, swaps it in
@@ -127,7 +132,13 @@ class AtlasService:
 
     def served_indexes(self) -> list[reads.ServedIndex]:
         """What this process serves: each loaded atlas's index size and change-feed lag."""
-        return reads.served_indexes(self.sessions, self.states.serving())
+        return self.reads.served_indexes(self.states.serving())
+
+    def closure_matches(self, atlas_name: str, closure_id: int, limit: int) -> ClosureMatches:
+        """A loop closure's verified matches, recomputed from both frames' stored keypoints."""
+        return closure_matches(
+            self.sessions, self.frames, self.verification, atlas_name, closure_id, limit
+        )
 
     def rebuild_index(self, atlas_name: str) -> int:
         """Re-embed every frame of an atlas from stored features into a fresh index file."""
@@ -153,8 +164,9 @@ class AtlasService:
         sequence_length: int | None = None,
     ) -> QueryResult:
         """The frames of the atlas most similar to an image, verified, and the loop-closure
-        decision. ``robot_id`` is the robot asking (its recent frames never match)."""
-        return self.queries.query(
+        decision. ``robot_id`` is the robot asking (its recent frames never match; a loop onto
+        another robot's frame is recorded)."""
+        result = self.queries.query(
             atlas_name=atlas_name,
             image_bytes=image_bytes,
             k=k,
@@ -162,6 +174,8 @@ class AtlasService:
             intrinsics=intrinsics,
             sequence_length=sequence_length,
         )
+        record_if_inter_robot(self.sessions, robot_id=robot_id, result=result, source="query")
+        return result
 
     def query_features(
         self,
@@ -175,8 +189,9 @@ class AtlasService:
         sequence_length: int | None = None,
         timestamp: float | None = None,
     ) -> QueryResult:
-        """Search with already extracted features (by :meth:`extract`) and verify."""
-        return self.queries.query_features(
+        """Search with already extracted features (by :meth:`extract`) and verify (a loop
+        onto another robot's frame is recorded, as by :meth:`query`)."""
+        result = self.queries.query_features(
             atlas_name=atlas_name,
             features=features,
             k=k,
@@ -185,6 +200,8 @@ class AtlasService:
             sequence_length=sequence_length,
             timestamp=timestamp,
         )
+        record_if_inter_robot(self.sessions, robot_id=robot_id, result=result, source="query")
+        return result
 
     def observe(
         self,
@@ -196,8 +213,9 @@ class AtlasService:
         query_filter: QueryFilter | None = None,
         sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
-        """:meth:`AtlasQueries.observe` with the observing robot's default filter."""
-        return self.queries.observe(
+        """:meth:`AtlasQueries.observe` with the observing robot's default filter; a loop onto
+        another robot's frame is recorded."""
+        result, frame = self.queries.observe(
             atlas_name=atlas_name,
             fields=fields,
             image_bytes=image_bytes,
@@ -205,6 +223,8 @@ class AtlasService:
             k=k,
             sequence_length=sequence_length,
         )
+        self._record_observation(fields, result, frame)
+        return result, frame
 
     def observe_features(
         self,
@@ -216,14 +236,26 @@ class AtlasService:
         query_filter: QueryFilter | None = None,
         sequence_length: int | None = None,
     ) -> tuple[QueryResult, Frame]:
-        """:meth:`AtlasQueries.observe_features` with the observing robot's default filter."""
-        return self.queries.observe_features(
+        """:meth:`AtlasQueries.observe_features` with the observing robot's default filter; a
+        loop onto another robot's frame is recorded."""
+        result, frame = self.queries.observe_features(
             atlas_name=atlas_name,
             fields=fields,
             features=features,
             query_filter=query_filter or self._robot_filter(fields),
             k=k,
             sequence_length=sequence_length,
+        )
+        self._record_observation(fields, result, frame)
+        return result, frame
+
+    def _record_observation(self, fields: FrameFields, result: QueryResult, frame: Frame) -> None:
+        record_if_inter_robot(
+            self.sessions,
+            robot_id=fields.robot_id,
+            result=result,
+            source="observe",
+            query_frame_id=frame.id,
         )
 
     def _robot_filter(self, fields: FrameFields) -> QueryFilter:

@@ -16,13 +16,13 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas import change_feed
+from service.atlas.milestones import calibration_due
 from service.atlas.names import validate_name
 from service.atlas.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.index.store import PGVECTOR
-from service.jobs.milestones import calibration_due
 from service.metrics import observe_stages
 from service.ml.decode_memory import DecodeBudget
 from service.ml.features import FrameFeatures

@@ -164,8 +164,7 @@ class AtlasQueries(Observations):
             timings: dict[str, float] = {}
             start = time.perf_counter()
             model = state.model
-            embedding = model.embed(features)
-            prediction = model.predict_submap(features)
+            embedding, prediction = model.embed_and_predict(features)
             timings["heads"] = (time.perf_counter() - start) * 1000.0
             found = self._find(session, atlas, state, embedding, k, query_filter, timings, robot)
         scores = model.score(np.array([c.similarity for c in found.candidates], np.float64))

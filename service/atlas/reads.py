@@ -15,6 +15,7 @@ from service.atlas.change_feed import revisions
 from service.atlas.loop_closures import list_loop_closures
 from service.atlas.model_versions import VersionConfig
 from service.atlas.state import LoadedAtlas
+from service.domain.statuses import CalibrationState
 from service.errors import Conflict
 from service.ml.presets import FeatureSignature
 from service.storage import repository as repo
@@ -42,54 +43,12 @@ def summary_of(session: Session, atlas: Atlas) -> dict[str, Any]:
 def calibration_state(config: VersionConfig) -> dict[str, Any]:
     """Whether the active version is calibrated, by which version's job, on how many frames."""
     if config.calibration is None:
-        return {"state": "uncalibrated", "version": None, "frames_at_fit": None}
+        return {"state": CalibrationState.UNCALIBRATED, "version": None, "frames_at_fit": None}
     return {
-        "state": "calibrated",
+        "state": CalibrationState.CALIBRATED,
         "version": config.calibration.get("version"),
         "frames_at_fit": config.calibration.get("frames_at_fit"),
     }
-
-
-def atlas_summary(sessions: Sessions, name: str) -> dict[str, Any]:
-    with sessions() as session:
-        return summary_of(session, repo.get_atlas(session, name=name))
-
-
-def atlas_summaries(sessions: Sessions, visible: Callable[[str], bool]) -> list[dict[str, Any]]:
-    """The summaries of the atlases ``visible`` lets the caller see."""
-    with sessions() as session:
-        return [summary_of(session, a) for a in repo.list_atlases(session) if visible(a.name)]
-
-
-def unavailable_atlases(sessions: Sessions, reasons: dict[int, str]) -> dict[str, str]:
-    """Atlas name -> why it cannot be loaded, from ``reasons`` by atlas id (atlases deleted
-    since are left out)."""
-    if not reasons:
-        return {}
-    with sessions() as session:
-        names = {a.id: a.name for a in repo.list_atlases(session)}
-    return {names[i]: reason for i, reason in reasons.items() if i in names}
-
-
-def feature_signature(sessions: Sessions, atlas: str) -> FeatureSignature:
-    """The signature of the atlas's features (Conflict when its row holds none)."""
-    with sessions() as session:
-        stored = repo.get_atlas(session, name=atlas).feature_signature
-    try:
-        return FeatureSignature.from_json(stored)
-    except ValueError as exc:
-        raise Conflict(f"atlas '{atlas}' records no usable feature signature: {exc}") from exc
-
-
-def submaps_with_counts(sessions: Sessions, atlas: str) -> list[tuple[Submap, int]]:
-    with sessions() as session:
-        return repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
-
-
-def model_versions(sessions: Sessions, atlas: str) -> list[ModelVersion]:
-    with sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        return repo.list_model_versions(session, atlas_id=found.id)
 
 
 @dataclass(frozen=True)
@@ -99,26 +58,6 @@ class FrameRecord:
     frame: Frame
 
 
-def frame_record(sessions: Sessions, atlas: str, frame_id: int) -> FrameRecord:
-    with sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
-        return FrameRecord(found.name, frame.submap.name, frame)
-
-
-def loop_closures(
-    sessions: Sessions,
-    atlas: str,
-    *,
-    robot: str | None = None,
-    since: datetime | None = None,
-    limit: int = 100,
-) -> list[tuple[LoopClosure, str]]:
-    with sessions() as session:
-        found = repo.get_atlas(session, name=atlas)
-        return list_loop_closures(session, atlas_id=found.id, robot=robot, since=since, limit=limit)
-
-
 @dataclass(frozen=True)
 class ServedIndex:
     atlas: str
@@ -126,18 +65,80 @@ class ServedIndex:
     revisions_behind: int  # how far the database's change feed is ahead of the index
 
 
-def served_indexes(sessions: Sessions, serving: list[LoadedAtlas]) -> list[ServedIndex]:
-    """Each served atlas's index size and its lag behind the change feed (atlases deleted
-    meanwhile are left out)."""
-    with sessions() as session:
-        names = {i: name for i, name in session.execute(select(Atlas.id, Atlas.name))}
-        current = revisions(session)
-    return [
-        ServedIndex(
-            names[state.atlas_id],
-            state.index.size,
-            max(0, current.get(state.atlas_id, 0) - state.revision),
-        )
-        for state in serving
-        if state.atlas_id in names
-    ]
+class Reads:
+    """What the API and the CLI read about atlases, each read in one session of its own."""
+
+    def __init__(self, sessions: Sessions) -> None:
+        self.sessions = sessions
+
+    def atlas_summary(self, name: str) -> dict[str, Any]:
+        with self.sessions() as session:
+            return summary_of(session, repo.get_atlas(session, name=name))
+
+    def atlas_summaries(self, visible: Callable[[str], bool]) -> list[dict[str, Any]]:
+        """The summaries of the atlases ``visible`` lets the caller see."""
+        with self.sessions() as session:
+            return [summary_of(session, a) for a in repo.list_atlases(session) if visible(a.name)]
+
+    def unavailable_atlases(self, reasons: dict[int, str]) -> dict[str, str]:
+        """Atlas name -> why it cannot be loaded, from ``reasons`` by atlas id (atlases deleted
+        since are left out)."""
+        if not reasons:
+            return {}
+        with self.sessions() as session:
+            names = {a.id: a.name for a in repo.list_atlases(session)}
+        return {names[i]: reason for i, reason in reasons.items() if i in names}
+
+    def feature_signature(self, atlas: str) -> FeatureSignature:
+        """The signature of the atlas's features (Conflict when its row holds none)."""
+        with self.sessions() as session:
+            stored = repo.get_atlas(session, name=atlas).feature_signature
+        try:
+            return FeatureSignature.from_json(stored)
+        except ValueError as exc:
+            raise Conflict(f"atlas '{atlas}' records no usable feature signature: {exc}") from exc
+
+    def submaps_with_counts(self, atlas: str) -> list[tuple[Submap, int]]:
+        with self.sessions() as session:
+            return repo.list_submaps_with_counts(session, atlas=repo.get_atlas(session, name=atlas))
+
+    def model_versions(self, atlas: str) -> list[ModelVersion]:
+        with self.sessions() as session:
+            found = repo.get_atlas(session, name=atlas)
+            return repo.list_model_versions(session, atlas_id=found.id)
+
+    def frame_record(self, atlas: str, frame_id: int) -> FrameRecord:
+        with self.sessions() as session:
+            found = repo.get_atlas(session, name=atlas)
+            frame = repo.get_frame(session, atlas=found, frame_id=frame_id)
+            return FrameRecord(found.name, frame.submap.name, frame)
+
+    def loop_closures(
+        self,
+        atlas: str,
+        *,
+        robot: str | None = None,
+        since: datetime | None = None,
+        limit: int = 100,
+    ) -> list[tuple[LoopClosure, str]]:
+        with self.sessions() as session:
+            found = repo.get_atlas(session, name=atlas)
+            return list_loop_closures(
+                session, atlas_id=found.id, robot=robot, since=since, limit=limit
+            )
+
+    def served_indexes(self, serving: list[LoadedAtlas]) -> list[ServedIndex]:
+        """Each served atlas's index size and its lag behind the change feed (atlases deleted
+        meanwhile are left out)."""
+        with self.sessions() as session:
+            names = {i: name for i, name in session.execute(select(Atlas.id, Atlas.name))}
+            current = revisions(session)
+        return [
+            ServedIndex(
+                names[state.atlas_id],
+                state.index.size,
+                max(0, current.get(state.atlas_id, 0) - state.revision),
+            )
+            for state in serving
+            if state.atlas_id in names
+        ]

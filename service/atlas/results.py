@@ -4,8 +4,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from service.atlas.sequences import SequenceAnswer
 from service.ml.verification import RelativePose
+
+
+@dataclass
+class SequenceAnswer:
+    """The best reference place for the robot's sequence.
+
+    ``frame_id`` is aligned with the newest frame; ``aligned`` gives the frame aligned with each
+    query frame, oldest first (None where the reference trajectory had none). ``margin`` is the
+    score minus that of the best rival place (``rival_frame_id``, None when no other place was
+    scored: the rival counts as 0); ``passed``: a loop on the sequence's own evidence."""
+
+    score: float
+    length: int
+    aligned: list[int | None]
+    speed: float
+    frame_id: int
+    margin: float
+    rival_frame_id: int | None
+    passed: bool
 
 
 @dataclass

@@ -28,6 +28,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from service.atlas.filters import Selection
+from service.atlas.results import SequenceAnswer
 from service.atlas.sequence_map import SequenceMap, SequenceMaps
 from service.atlas.state import LoadedAtlas
 from service.config import Settings
@@ -53,25 +54,6 @@ SERVICE_SEQUENCE = SequenceSettings(seed_frames=0)
 # of frames behind it, which must not make its first frame somewhere new a loop (on the
 # development sets this keeps 94-99% of the right sequence answers, 71-86% of the wrong ones).
 NEWEST_Z_MIN = 1.0
-
-
-@dataclass
-class SequenceAnswer:
-    """The best reference place for the robot's sequence.
-
-    ``frame_id`` is aligned with the newest frame; ``aligned`` gives the frame aligned with each
-    query frame, oldest first (None where the reference trajectory had none). ``margin`` is the
-    score minus that of the best rival place (``rival_frame_id``, None when no other place was
-    scored: the rival counts as 0); ``passed``: a loop on the sequence's own evidence."""
-
-    score: float
-    length: int
-    aligned: list[int | None]
-    speed: float
-    frame_id: int
-    margin: float
-    rival_frame_id: int | None
-    passed: bool
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,6 @@ logged. Failed authentications are logged (never the token) and limited per clie
 
 from __future__ import annotations
 
-import enum
 import hashlib
 import logging
 import secrets
@@ -35,6 +34,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.atlas.names import validate_name
 from service.config import Settings
+from service.domain.statuses import Role as Role
 from service.errors import Forbidden, InvalidInput, NotFound, TooManyFailures, Unauthorized
 from service.fleet.failures import FailureLimiter
 from service.storage.db import transaction
@@ -43,12 +43,6 @@ from service.storage.models import ApiKey, Atlas, utcnow
 log = logging.getLogger(__name__)
 
 TOKEN_PREFIX = "lnk_"
-
-
-class Role(enum.IntEnum):
-    robot = 1
-    operator = 2
-    admin = 3
 
 
 def parse_role(name: str) -> Role:
@@ -150,30 +144,6 @@ def revoke_key(session: Session, *, key_id: int, revoker: Principal = OPEN) -> A
     return key
 
 
-def issue(
-    sessions: sessionmaker[Session],
-    *,
-    name: str,
-    role: Role,
-    atlases: list[str],
-    creator: Principal = OPEN,
-) -> NewKey:
-    """Create a key in its own transaction (the API and the CLI call this; the CLI, run on the
-    server itself, creates as :data:`OPEN`)."""
-    with transaction(sessions) as session:
-        return create_key(session, name=name, role=role, atlases=atlases, creator=creator)
-
-
-def listing(sessions: sessionmaker[Session], *, viewer: Principal = OPEN) -> list[ApiKey]:
-    with sessions() as session:
-        return list_keys(session, viewer=viewer)
-
-
-def revoke(sessions: sessionmaker[Session], *, key_id: int, revoker: Principal = OPEN) -> ApiKey:
-    with transaction(sessions) as session:
-        return revoke_key(session, key_id=key_id, revoker=revoker)
-
-
 class Authenticator:
     """Turns a presented token into a :class:`Principal`, or raises 401/403/429 errors."""
 
@@ -268,3 +238,32 @@ class Authenticator:
             )
         else:
             log.info("API keys required (LOOPNET_AUTH=%s)", self.mode)
+
+
+class KeyAdmin:
+    """Creating, listing and revoking API keys, each in one transaction of its own (the API
+    and the CLI call these)."""
+
+    def __init__(self, sessions: sessionmaker[Session]) -> None:
+        self.sessions = sessions
+
+    def issue(
+        self,
+        *,
+        name: str,
+        role: Role,
+        atlases: list[str],
+        creator: Principal = OPEN,
+    ) -> NewKey:
+        """Create a key in its own transaction (the API and the CLI call this; the CLI, run on the
+        server itself, creates as :data:`OPEN`)."""
+        with transaction(self.sessions) as session:
+            return create_key(session, name=name, role=role, atlases=atlases, creator=creator)
+
+    def listing(self, *, viewer: Principal = OPEN) -> list[ApiKey]:
+        with self.sessions() as session:
+            return list_keys(session, viewer=viewer)
+
+    def revoke(self, *, key_id: int, revoker: Principal = OPEN) -> ApiKey:
+        with transaction(self.sessions) as session:
+            return revoke_key(session, key_id=key_id, revoker=revoker)

@@ -9,8 +9,7 @@ other name are refused, as is a member whose header declares more bytes than the
 check happens on the header, so a small compressed archive announcing a huge member is
 refused without inflating it. The members within the limits are copied to files in a folder
 the caller owns (a temporary one) through a buffer of :data:`COPY_CHUNK` bytes, hashed on the
-way: a small ``.tar.gz`` of zeros costs disk up to the limits, never memory (it once raised the
-server by 794 MB before its 422). The row files are then read a line at a time, the arrays
+way: a small ``.tar.gz`` of zeros costs disk up to the limits, never memory. The row files are then read a line at a time, the arrays
 memory-mapped (:mod:`service.fleet.snapshot_features`).
 """
 
@@ -29,6 +28,7 @@ from typing import IO, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.domain.limits import ArchiveLimits
 from service.errors import InvalidInput
 
 FORMAT = "loopnet-atlas-snapshot"
@@ -79,14 +79,6 @@ def head_revision() -> str:
 def known_revisions() -> set[str]:
     """The schema revisions this LoopNet knows (a restore refuses a newer one)."""
     return {s.revision for s in _migrations().walk_revisions()}
-
-
-@dataclass(frozen=True)
-class ArchiveLimits:
-    """Largest member and largest sum of members (uncompressed bytes) a restore reads."""
-
-    max_member_bytes: int
-    max_total_bytes: int
 
 
 class Counts(BaseModel):

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from service.domain.limits import ArchiveLimits
 from service.errors import InvalidInput
-from service.fleet.snapshot_archive import ArchiveLimits
 from service.npz_reader import NpzReader
 
 MAX_DIM = 4096  # widest feature, hidden layer or embedding accepted (RetrainParams.embed_dim)

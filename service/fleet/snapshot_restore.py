@@ -36,7 +36,8 @@ from service.atlas.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.fleet.snapshot_archive import known_revisions, read_archive
-from service.fleet.snapshot_rows import DecodedSnapshot, FrameRow, decode_snapshot
+from service.fleet.snapshot_rows import DecodedSnapshot, decode_snapshot
+from service.fleet.snapshot_schema import FrameRow
 from service.index import AtlasIndex
 from service.ml.features import as_stored
 from service.ml.pipeline import embed_vectors

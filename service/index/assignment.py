@@ -1,11 +1,11 @@
 """Which inverted list a vector joins: its nearest centroid by inner product, scored with bf16
 products where the CPU computes them natively.
 
-faiss scores every centroid with float32 products, about 100 GFLOP/s a core on the AMD EPYC of
-benchmarks/RESULTS.md; bf16 products (AVX512-BF16) run at about 400. Their scores, rounded to
-bf16, pick each vector's best two lists and float32 dot products choose between the two: the
-list of float32 scoring but for near ties below bf16's resolution (at 1M synthetic 256-d
-frames and 1,024 lists, 0.26 % of the vectors, each within about 0.002 of the best score).
+faiss scores every centroid with float32 products; bf16 products (AVX512-BF16) run several
+times faster where the CPU has them. Their scores, rounded to bf16, pick each vector's best two
+lists and float32 dot products choose between the two: the list of float32 scoring but for near
+ties below bf16's resolution (how often, and how near: benchmarks/RESULTS.md, "Figures behind
+choices in the code").
 Adds and :meth:`~service.index.atlas_index.AtlasIndex.stored_like` assign with the same
 :class:`ListAssigner`, so a frame is always found in the list it was added to.
 """
@@ -47,7 +47,7 @@ class ListAssigner:
         """bf16 scores for the best two lists, float32 dot products to choose between them."""
         scores = torch.mm(torch.from_numpy(block).bfloat16(), bf16).float().numpy()
         rows = np.arange(len(block))
-        first = scores.argmax(axis=1)  # numpy's argmax: 3x torch's here
+        first = scores.argmax(axis=1)  # numpy's argmax: faster than torch's here
         scores[rows, first] = -np.inf
         second = scores.argmax(axis=1)
         exact_first = np.einsum("ij,ij->i", self._centroids[first], block)

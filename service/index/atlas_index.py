@@ -33,68 +33,17 @@ import faiss
 import numpy as np
 
 from service.index.assignment import ListAssigner
+from service.index.faiss_parts import (
+    IndexPolicy,
+    add_vectors,
+    assigner_of,
+    flat_index,
+    id_selector,
+    quantizer_name,
+)
+from service.index.journal import Change, ChangeJournal
 
 log = logging.getLogger(__name__)
-
-
-MIN_PER_LIST = 39  # k-means needs about this many training vectors per list (faiss warns below)
-
-
-def ivf_nlist(n: int, per_sqrt: float = 1.0) -> int:
-    """Inverted lists for ``n`` vectors: the power of two nearest ``per_sqrt * sqrt(n)``, with
-    at least ``MIN_PER_LIST`` vectors per list (and at least 16 lists)."""
-    nearest = 2 ** round(np.log2(per_sqrt * np.sqrt(max(n, 1))))
-    most = 2 ** int(np.log2(max(n // MIN_PER_LIST, 1)))
-    return int(max(16, min(nearest, most)))
-
-
-@dataclass(frozen=True)
-class IndexPolicy:
-    """When the index switches from exact to approximate search, and how it is tuned.
-
-    Attributes:
-        flat_max_bytes: exact search while the flat index holds at most this many bytes of
-            vectors (32k frames at 256-d, 6k at 1408-d; its query time is in
-            benchmarks/RESULTS.md). A scan's cost is its bytes, so the threshold is in bytes.
-        bytes_per_frame: memory budget of one frame's code in the inverted file (+ its 8-byte
-            id); the finest scalar quantiser that fits is chosen (fp16, 8, 6 or 4 bits). 1500
-            gives float16 codes at 256-d (520 B; 8-bit codes lose near ties there) and 8-bit
-            codes at 1408-d (1416 B; 6-bit codes fit but lose recall, see benchmarks/RESULTS.md).
-        nprobe: inverted lists visited per query.
-        lists_per_sqrt: inverted lists per square root of the size (:func:`ivf_nlist`). Fewer
-            lists train and assign faster (a rebuild's cost is size x lists) and scan more
-            per probe: at 1M frames (256-d, synthetic) 1 (IVF1024) built in 72 s against 346 s
-            for 4 (IVF4096) with recall@1 1.000 for both, p50 1.06 against 0.42 ms
-            (benchmarks/RESULTS.md, *Re-embedding + index rebuild at 1M*).
-        train_per_list: training vectors per list (k-means sample, taken in id order; faiss
-            warns below 39).
-        kmeans_iterations: k-means iterations when (re)training. 5: at 1M frames (256-d,
-            synthetic, 1,000 queries, nprobe 32) recall@1 1.000 and recall@5 0.9996, as with
-            10 (1.000, 0.9998), for half the training (1.2 against 2.3 CPU s); 3 gave 0.999.
-            At 4 probes the centroids' quality shows, within k-means' own noise: recall@1
-            0.940 (10 iterations), 0.918 (5), 0.934 (3).
-        background: train and fill a new index in a thread while the old one serves (the
-            service); off, the add that crosses a threshold waits for it.
-    """
-
-    flat_max_bytes: int = 32 << 20
-    bytes_per_frame: int = 1500
-    nprobe: int = 32
-    lists_per_sqrt: float = 1.0
-    train_per_list: int = MIN_PER_LIST + 1
-    kmeans_iterations: int = 5
-    background: bool = True
-
-    def flat_max(self, dim: int) -> int:
-        """The most frames searched exactly at ``dim``."""
-        return self.flat_max_bytes // (4 * dim)
-
-    def quantizer(self, dim: int) -> str:
-        """The FAISS scalar-quantiser name whose codes fit the budget at ``dim``."""
-        for name, bits in (("SQfp16", 16), ("SQ8", 8), ("SQ6", 6)):
-            if dim * bits / 8 + 8 <= self.bytes_per_frame:
-                return name
-        return "SQ4"
 
 
 @dataclass(frozen=True)
@@ -112,7 +61,7 @@ class AtlasIndex:
         self.dim = dim
         self.policy = policy or IndexPolicy()
         # faiss's SWIG classes are only partly typed: treat the index as Any.
-        self._index: Any = index if index is not None else _flat(dim)
+        self._index: Any = index if index is not None else flat_index(dim)
         if self._index.d != dim:
             raise ValueError(f"index has dimension {self._index.d}, expected {dim}")
         self._robot_of: dict[int, str] = {}
@@ -123,37 +72,19 @@ class AtlasIndex:
         self._rebuilder: threading.Thread | None = None
         self._bulk = 0  # open bulk() blocks: rebuilds wait until the last one closes
         # Every add and removal, numbered: caches of the held vectors follow them cheaply.
-        self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
-        self._journal_start = 0  # generation of the journal's first entry
-        self._unjournaled = False  # inside a bulk block that began on an empty index
-
-    JOURNAL_KEPT = 1024
+        self._journal = ChangeJournal()
 
     @property
     def generation(self) -> int:
         """How many adds and removals this index object has seen."""
-        return self._journal_start + len(self._journal)
+        return self._journal.generation
 
-    def changes_since(
-        self, generation: int
-    ) -> list[tuple[int, np.ndarray, np.ndarray | None]] | None:
+    def changes_since(self, generation: int) -> list[Change] | None:
         """The adds (+1, ids, the vectors added) and removals (-1, ids, None) after
         ``generation``, oldest first; None when the journal no longer reaches back that far
         (also across a bulk load into an empty index: see :meth:`bulk`)."""
         with self._lock:
-            if generation < self._journal_start or generation > self.generation:
-                return None
-            return list(self._journal[generation - self._journal_start :])
-
-    def _note(self, sign: int, ids: np.ndarray, vectors: np.ndarray | None = None) -> None:
-        """Journal an add or removal (a copy: the caller's arrays may change)."""
-        if self._unjournaled:
-            return
-        self._journal.append((sign, ids.copy(), None if vectors is None else vectors.copy()))
-        if len(self._journal) > self.JOURNAL_KEPT:
-            drop = len(self._journal) - self.JOURNAL_KEPT // 2
-            self._journal = self._journal[drop:]
-            self._journal_start += drop
+            return self._journal.since(generation)
 
     def vectors(self, ids: np.ndarray) -> np.ndarray:
         """The stored vectors of held frame ``ids`` (decoded codes for the inverted file)."""
@@ -196,7 +127,7 @@ class AtlasIndex:
         ivf = self._ivf()
         if ivf is None:
             return "Flat (exact)"
-        return f"IVF{ivf.nlist},{_quantizer_name(ivf)} nprobe={min(self.policy.nprobe, ivf.nlist)}"
+        return f"IVF{ivf.nlist},{quantizer_name(ivf)} nprobe={min(self.policy.nprobe, ivf.nlist)}"
 
     def _ivf(self) -> Any | None:
         """The inverted-file index, or None while the index is flat."""
@@ -237,7 +168,7 @@ class AtlasIndex:
             self._regrow(new_ids, added)
             kept = [robot for robot, is_new in zip(robots, new, strict=True) if is_new]
             self._robot_of.update(zip(new_ids.tolist(), kept, strict=True))
-            self._note(1, new_ids, added)
+            self._journal.note(1, new_ids, added)
             return int(new.sum())
 
     def set_robots(self, robot_of: dict[int, str]) -> None:
@@ -253,7 +184,7 @@ class AtlasIndex:
             removed = int(self._index.remove_ids(ids))
             for i in ids:
                 self._robot_of.pop(int(i), None)
-            self._note(-1, ids)
+            self._journal.note(-1, ids)
             if self._log is not None:
                 self._log.append(("remove", ids, None))
             elif not self._bulk:
@@ -295,7 +226,7 @@ class AtlasIndex:
                 wanted = max(min(k, self.size - len(exclude)), 0)
             else:
                 wanted = k
-            similarities, ids = self._search(query, k, _selector(include, exclude), wanted)
+            similarities, ids = self._search(query, k, id_selector(include, exclude), wanted)
         return [
             Hit(int(i), float(s)) for i, s in zip(ids[0], similarities[0], strict=True) if i >= 0
         ]
@@ -326,7 +257,7 @@ class AtlasIndex:
     def _regrow(self, ids: np.ndarray, vectors: np.ndarray) -> None:
         """Add ``vectors``; when the atlas's size calls for another index (exact to inverted
         file, or more lists), start rebuilding it from the held vectors."""
-        _add(self._index, ids, vectors, self._current_assigner())
+        add_vectors(self._index, ids, vectors, self._current_assigner())
         if self._log is not None:
             self._log.append(("add", ids, vectors.copy()))
         elif not self._bulk:
@@ -345,7 +276,7 @@ class AtlasIndex:
         so :meth:`changes_since` any earlier generation is None and a cache reloads."""
         with self._lock:
             if not self._bulk and self.size == 0 and self._log is None:
-                self._unjournaled = True
+                self._journal.paused = True
             self._bulk += 1
         try:
             yield
@@ -356,9 +287,9 @@ class AtlasIndex:
                     self._end_bulk()
 
     def _end_bulk(self) -> None:
-        if self._unjournaled:
-            self._unjournaled = False
-            self._journal_start, self._journal = self.generation + 1, []
+        if self._journal.paused:
+            self._journal.paused = False
+            self._journal.restart()
         if self._log is None:
             self._regrow_if_due()
 
@@ -366,8 +297,8 @@ class AtlasIndex:
         """The frames of ``ids`` whose vectors train the inverted file for that many frames
         (see :meth:`prepare`), or None when they are few enough for exact search."""
         ids = np.asarray(ids, dtype=np.int64)
-        nlist = self._wanted_nlist(len(ids))
-        return None if nlist is None else ids[self._training_rows(ids, nlist)]
+        nlist = self.policy.wanted_nlist(self.dim, len(ids))
+        return None if nlist is None else ids[self.policy.training_rows(ids, nlist)]
 
     def prepare(self, size: int, sample: np.ndarray) -> bool:
         """Make an empty index the inverted file ``size`` frames call for, trained on
@@ -376,10 +307,10 @@ class AtlasIndex:
         when the index holds frames, is rebuilding or is prepared already, when ``size``
         frames fit exact search, or when ``sample`` has fewer vectors than lists."""
         with self._lock:
-            nlist = self._wanted_nlist(size)
+            nlist = self.policy.wanted_nlist(self.dim, size)
             if not self._preparable() or nlist is None or len(sample) < nlist:
                 return False
-        target = self._ivf_like(size)
+        target = self.policy.new_ivf(self.dim, size)
         # k-means outside the lock (but for add()'s one large add: nothing to serve yet)
         target.train(np.ascontiguousarray(sample, dtype=np.float32))
         with self._lock:
@@ -393,20 +324,9 @@ class AtlasIndex:
 
     def _prepare_from(self, ids: np.ndarray, vectors: np.ndarray) -> None:
         """:meth:`prepare` for ``ids`` about to be added to an empty index in one call."""
-        nlist = self._wanted_nlist(len(ids))
+        nlist = self.policy.wanted_nlist(self.dim, len(ids))
         if nlist is not None:
-            self.prepare(len(ids), vectors[self._training_rows(ids, nlist)])
-
-    def _training_rows(self, ids: np.ndarray, nlist: int) -> np.ndarray:
-        """Rows of the k-means sample for ``nlist`` lists: evenly spaced in id order (the same
-        sample however the frames arrive), at least ``train_per_list`` a list."""
-        step = max(1, len(ids) // (self.policy.train_per_list * nlist))
-        return np.argsort(ids, kind="stable")[::step]
-
-    def _wanted_nlist(self, size: int) -> int | None:
-        if size <= self.policy.flat_max(self.dim):
-            return None
-        return ivf_nlist(size, self.policy.lists_per_sqrt)
+            self.prepare(len(ids), vectors[self.policy.training_rows(ids, nlist)])
 
     def _start_rebuild(self, size: int) -> None:
         """Snapshot the held vectors (under the lock), then train and fill the new index.
@@ -420,7 +340,11 @@ class AtlasIndex:
         """
         ids = np.sort(self.ids())
         vectors = self._reconstruct(ids)
-        target = self._flat_like() if self._wanted_nlist(size) is None else self._ivf_like(size)
+        target = (
+            flat_index(self.dim)
+            if self.policy.wanted_nlist(self.dim, size) is None
+            else self.policy.new_ivf(self.dim, size)
+        )
         self._log = []
         if not self.policy.background:
             self._finish_rebuild(target, ids, vectors)
@@ -434,9 +358,9 @@ class AtlasIndex:
         try:
             if not target.is_trained:
                 nlist = faiss.extract_index_ivf(target).nlist
-                target.train(vectors[self._training_rows(ids, nlist)])
-            assigner = _assigner_of(target)
-            _add(target, ids, vectors, assigner)
+                target.train(vectors[self.policy.training_rows(ids, nlist)])
+            assigner = assigner_of(target)
+            add_vectors(target, ids, vectors, assigner)
         except Exception:
             log.exception("index rebuild failed; the current index keeps serving")
             with self._lock:
@@ -446,7 +370,7 @@ class AtlasIndex:
             for operation, op_ids, op_vectors in self._log or []:
                 if operation == "add":
                     assert op_vectors is not None
-                    _add(target, op_ids, op_vectors, assigner)
+                    add_vectors(target, op_ids, op_vectors, assigner)
                 else:
                     target.remove_ids(op_ids)
             self._index, self._assigner, self._log = target, assigner, None
@@ -456,14 +380,14 @@ class AtlasIndex:
     def _current_assigner(self) -> ListAssigner | None:
         """The current inverted file's assigner (None while the index is flat)."""
         if self._assigner is None or self._assigner.index is not self._index:
-            self._assigner = _assigner_of(self._index)
+            self._assigner = assigner_of(self._index)
         return self._assigner
 
     def _regrow_if_due(self) -> None:
         """Rebuild when the size calls for another type: exact to inverted file, twice the
         lists, or exact again once shrunk to half the threshold (so a size near it never
         flips back and forth)."""
-        ivf, wanted = self._ivf(), self._wanted_nlist(self.size)
+        ivf, wanted = self._ivf(), self.policy.wanted_nlist(self.dim, self.size)
         if ivf is None:
             due = wanted is not None
         elif wanted is None:
@@ -477,16 +401,6 @@ class AtlasIndex:
         """Block until rebuilds in progress (and any they chain) have replaced the index."""
         while (thread := self._rebuilder) is not None and thread.is_alive():
             thread.join()
-
-    def _flat_like(self) -> Any:
-        return _flat(self.dim)
-
-    def _ivf_like(self, size: int) -> Any:
-        nlist = ivf_nlist(size, self.policy.lists_per_sqrt)
-        name = f"IVF{nlist},{self.policy.quantizer(self.dim)}"
-        index = faiss.index_factory(self.dim, name, faiss.METRIC_INNER_PRODUCT)
-        faiss.extract_index_ivf(index).cp.niter = self.policy.kmeans_iterations
-        return index
 
     def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
         """The stored vectors of ``ids`` (exact for flat, decoded codes for the inverted file)."""
@@ -533,45 +447,3 @@ class AtlasIndex:
         with self._lock:
             ids = self.ids()
             return ids, self._reconstruct(ids)
-
-
-def _assigner_of(index: Any) -> ListAssigner | None:
-    return ListAssigner(index) if isinstance(index, faiss.IndexIVF) else None
-
-
-def _add(index: Any, ids: np.ndarray, vectors: np.ndarray, assigner: ListAssigner | None) -> None:
-    """Add to ``index``; the lists of an inverted file are ``assigner``'s (bf16 scoring)."""
-    if assigner is None:
-        index.add_with_ids(vectors, ids)
-        return
-    ids = np.ascontiguousarray(ids, dtype=np.int64)
-    vectors = np.ascontiguousarray(vectors, dtype=np.float32)
-    lists = assigner.assign(vectors)
-    index.add_core(len(ids), faiss.swig_ptr(vectors), faiss.swig_ptr(ids), faiss.swig_ptr(lists))
-
-
-def _flat(dim: int) -> Any:
-    return faiss.IndexIDMap2(faiss.IndexFlatIP(dim))
-
-
-def _quantizer_name(ivf: Any) -> str:
-    names = {
-        faiss.ScalarQuantizer.QT_fp16: "SQfp16",
-        faiss.ScalarQuantizer.QT_8bit: "SQ8",
-        faiss.ScalarQuantizer.QT_6bit: "SQ6",
-        faiss.ScalarQuantizer.QT_4bit: "SQ4",
-    }
-    sq = getattr(ivf, "sq", None)
-    return names.get(sq.qtype, "SQ") if sq is not None else type(ivf).__name__
-
-
-def _selector(include: np.ndarray | None, exclude: np.ndarray | None) -> Any:
-    """A FAISS id selector: only ``include`` if given, else all but ``exclude``; None: all."""
-    if include is not None:
-        return faiss.IDSelectorBatch(np.ascontiguousarray(include, np.int64))
-    if exclude is not None and len(exclude):
-        dropped = faiss.IDSelectorBatch(np.ascontiguousarray(exclude, np.int64))
-        selector: Any = faiss.IDSelectorNot(dropped)
-        selector.referenced = dropped  # keep the wrapped selector alive
-        return selector
-    return None

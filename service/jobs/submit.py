@@ -18,7 +18,6 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.atlas.model_versions import VersionConfig
 from service.errors import InvalidInput, NotReady
 from service.jobs.calibration import MIN_FRAMES, calibration_config
-from service.jobs.queue import Queue
 from service.ml.training import TrainingConfig
 from service.storage import jobs
 from service.storage import repository as repo
@@ -74,7 +73,12 @@ def check_atlas_ready(session: Session, atlas_id: int, atlas: str, kind: str) ->
 
 
 def submit_job(
-    sessions: sessionmaker[Session], queue: Queue, *, atlas: str, kind: str, params: dict[str, Any]
+    sessions: sessionmaker[Session],
+    enqueue: Callable[[int], None],
+    *,
+    atlas: str,
+    kind: str,
+    params: dict[str, Any],
 ) -> Job:
     """Validate, create and enqueue a job; returns it as it stands once enqueued."""
     config = check_params(kind, params)
@@ -84,7 +88,7 @@ def submit_job(
             check_fits(session, config, atlas_id=found.id)
         check_atlas_ready(session, found.id, atlas, kind)
         job = jobs.create_job(session, atlas_id=found.id, kind=kind, params=params)
-    enqueue_or_fail(sessions, queue.enqueue, job.id)
+    enqueue_or_fail(sessions, enqueue, job.id)
     with sessions() as session:  # a worker may have claimed it already
         return jobs.get_job(session, job_id=job.id)
 

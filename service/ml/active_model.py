@@ -41,9 +41,15 @@ class ActiveModel:
         row: np.ndarray = embed_vectors(self.heads, *self.inputs(features))[0]
         return row
 
-    def predict_submap(self, features: FrameFeatures) -> SubmapPrediction | None:
+    def embed_and_predict(
+        self, features: FrameFeatures
+    ) -> tuple[np.ndarray, SubmapPrediction | None]:
+        """The unit embedding and the classification head's submap (None without one) of a
+        query frame, from one computation of the heads' inputs (VLAD and whitenings run once)."""
         local, global_ = self.inputs(features)
-        return self.heads.predict_submap(torch.from_numpy(local), torch.from_numpy(global_))
+        embedding: np.ndarray = embed_vectors(self.heads, local, global_)[0]
+        prediction = self.heads.predict_submap(torch.from_numpy(local), torch.from_numpy(global_))
+        return embedding, prediction
 
     def score(self, similarities: np.ndarray) -> np.ndarray | None:
         """Calibrated scores of cosines; None when the version has no impostor model."""

@@ -2,8 +2,8 @@
 
 Verification fits one fundamental matrix per retrieval candidate. kornia's RANSAC spends most
 of a call on fixed per-call work (2048 hypotheses a batch, a Levenberg-Marquardt refinement
-of eight models in small torch operations): 15-40 ms a candidate whether it has 20 matches
-or 200. Here the hypotheses of every candidate go through the same few array operations:
+of eight models in small torch operations), whether a candidate has 20 matches or 200
+(figures: benchmarks/RESULTS.md, "Figures behind choices in the code"). Here the hypotheses of every candidate go through the same few array operations:
 
 - 7-point minimal solver: the two null vectors of each 7 x 9 design matrix by one batched
   7 x 7 elimination (SVD for the degenerate samples), the cubic ``det(l F1 + (1 - l) F2) = 0``

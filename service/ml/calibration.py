@@ -16,155 +16,56 @@ the calibrated branches.
 impostor spread and fuses at the weight (:attr:`Calibration.fusion_alpha`) that gives each
 branch's *standardised* cosine the share ``alpha^2 : (1 - alpha)^2``: ``alpha`` keeps the
 paper's meaning whatever the branch sizes. The default is 0.5 (no branch preferred): chosen
-over the paper's 0.7 and 0.6 on the first half of each development set's queries
-(benchmarks/RESULTS.md, "Choosing the calibration"). Everything is computed from stored features (descriptors, scores,
-backbone vectors): re-embedding an atlas never runs a CNN.
+over the paper's 0.7 and 0.6 on the first half of each development set's queries (RESULTS-history.md).
+Everything is computed from stored features: re-embedding an atlas never runs a CNN.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO
 
 import numpy as np
 
 from service.ml.aggregation import l2_normalize
-from service.ml.aggregators import Aggregator, aggregator_from_state, fit_aggregator
+from service.ml.aggregators import (
+    Aggregator,
+    aggregator_from_state,
+    fit_aggregator,
+)
+from service.ml.calibration_config import (
+    CalibrationConfig,
+    CalibrationInputs,
+    FittedCalibration,
+    ImpostorProbe,
+)
+from service.ml.calibration_math import (
+    StageClock,
+    aggregate_frames,
+    cosine_weights,
+    descriptor_sample,
+    held_out_stretches,
+    impostor_spread,
+    rotated_onto,
+    rows_of,
+    spread_of,
+    standardised_alpha,
+)
 from service.ml.features import LocalFeatures
+from service.ml.fusion import weighted_branches
 from service.ml.heads import HeadsConfig
 from service.ml.impostors import (
     MIN_PAIRS,
     ImpostorModel,
     impostor_pairs,
     pair_cosines,
-    sequence_positions,
 )
-from service.ml.whitening import Whitening, WhiteningConfig
+from service.ml.whitening import Whitening
 
 FORMAT_VERSION = 1
-VLAD_SIZE = 16_384  # values of a raw VLAD vector (words x descriptor dim) when words is None
-
-
-@dataclass(frozen=True)
-class CalibrationConfig:
-    """What a calibration fits, and with how much data.
-
-    Attributes:
-        aggregator: ``vlad`` or ``mean`` (see :mod:`service.ml.aggregators`).
-        words: VLAD vocabulary size; None: ``VLAD_SIZE // descriptor dim`` (DISK 128 words,
-            XFeat 256), so every extractor's VLAD has the same length.
-        local, global_: each branch's reduction and whitening.
-        alpha: the fusion weight of the local branch.
-        descriptor_sample: descriptors the vocabulary is learned on, at most.
-        fit_frames: frames each whitening is fitted on, at most (sampled).
-        impostor_pairs: impostor pairs the score model is fitted on, at most.
-        impostor_holdout: share of the fitting frames left out of a second, probe whitening
-            so that impostor pairs pair unseen frames with seen ones, as queries do.
-        seed: every sample and the k-means start from it (a calibration is reproducible).
-    """
-
-    aggregator: str = "vlad"
-    words: int | None = None
-    local: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
-    global_: WhiteningConfig = field(default_factory=lambda: WhiteningConfig(max_dims=512))
-    alpha: float = 0.5
-    descriptor_sample: int = 100_000
-    fit_frames: int = 20_000
-    impostor_pairs: int = 100_000
-    impostor_holdout: float = 0.2
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.alpha <= 1.0:
-            raise ValueError(f"alpha must lie in [0, 1], got {self.alpha}")
-        if self.words is not None and self.words < 1:
-            raise ValueError(f"words must be at least 1, got {self.words}")
-
-    def words_for(self, descriptor_dim: int) -> int:
-        """The vocabulary size for descriptors of ``descriptor_dim`` values."""
-        return self.words if self.words is not None else max(8, VLAD_SIZE // descriptor_dim)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> CalibrationConfig:
-        return cls(
-            **{
-                **data,
-                "local": WhiteningConfig(**data["local"]),
-                "global_": WhiteningConfig(**data["global_"]),
-            }
-        )
-
-
-@dataclass
-class CalibrationInputs:
-    """Stored features of an atlas's frames, as a calibration job reads them back.
-
-    Attributes:
-        descriptors: per frame, ``N_i x d`` local descriptors (float16 as stored is fine).
-        scores: per frame, ``N_i`` detection scores.
-        global_vectors: ``n x C`` backbone vectors R.
-        robots: per frame, the robot that recorded it.
-        order: per frame, its place in its robot's sequence (frame id or timestamp).
-    """
-
-    descriptors: Sequence[np.ndarray]
-    scores: Sequence[np.ndarray]
-    global_vectors: np.ndarray
-    robots: Sequence[str]
-    order: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = len(self.global_vectors)
-        if (
-            not len(self.descriptors)
-            == len(self.scores)
-            == len(self.robots)
-            == len(self.order)
-            == n
-        ):
-            raise ValueError(
-                f"calibration inputs disagree on the frame count: {len(self.descriptors)} "
-                f"descriptor sets, {len(self.scores)} score sets, {n} global vectors, "
-                f"{len(self.robots)} robots, {len(self.order)} order keys"
-            )
-
-    def __len__(self) -> int:
-        return len(self.global_vectors)
-
-
-@dataclass
-class FittedCalibration:
-    """A fitted calibration and the branch vectors of the frames it was fitted on
-    (so the job re-embeds those frames without aggregating them twice)."""
-
-    calibration: Calibration
-    local_branch: np.ndarray
-    global_branch: np.ndarray
-    timings_s: dict[str, float]
-    cpu_s: dict[str, float]  # per stage too: on a shared machine, what a quiet one would take
-
-
-@dataclass
-class ImpostorProbe:
-    """Branch vectors of an atlas's frames and the impostor pairs a score model is fitted on.
-
-    Every pair's ``first`` frame was held out of the whitenings that made these branches and
-    its ``second`` was not, as a query meets stored frames; ``in_sample``: an atlas too small
-    for that, whose pairs are in-sample pairs of the calibrated branches.
-    """
-
-    local_branch: np.ndarray
-    global_branch: np.ndarray
-    first: np.ndarray
-    second: np.ndarray
-    in_sample: bool
 
 
 class Calibration:
@@ -240,7 +141,7 @@ class Calibration:
         """``[a * D_w, (1 - a) * R_w]``, L2-normalised, ``a`` the fusion weight of ``alpha``
         (default: the calibration's) on these branches' spreads."""
         a = self.fusion_alpha if alpha is None else standardised_alpha(alpha, self.spread)
-        return l2_normalize(np.hstack([a * local_branch, (1.0 - a) * global_branch]))
+        return l2_normalize(weighted_branches(local_branch, global_branch, a))
 
     def embed_many(
         self,
@@ -316,7 +217,7 @@ class Calibration:
                 Whitening.from_state(part("local")),
                 Whitening.from_state(part("global")),
                 ImpostorModel.from_state(part("impostors")) if meta["impostors"] else None,
-                _spread_of(meta.get("spread")),
+                spread_of(meta.get("spread")),
             )
 
     # ----- fitting ------------------------------------------------------------------------
@@ -367,8 +268,8 @@ class Calibration:
         local_cos = pair_cosines(found.local_branch, first, second)
         global_cos = pair_cosines(found.global_branch, first, second)
         both_local = has_local[first] & has_local[second]
-        calibration.spread = (_spread(local_cos[both_local]), _spread(global_cos))
-        weights = _cosine_weights(calibration.fusion_alpha)
+        calibration.spread = (impostor_spread(local_cos[both_local]), impostor_spread(global_cos))
+        weights = cosine_weights(calibration.fusion_alpha)
         calibration.impostors = ImpostorModel.fit(weights[0] * local_cos + weights[1] * global_cos)
         clock.lap("impostors")
         return FittedCalibration(calibration, local_branch, global_branch, clock.wall, clock.cpu)
@@ -394,8 +295,8 @@ class Calibration:
             return found
         return replace(
             found,
-            local_branch=_rotated_onto(found.local_branch, seen[0], ~held & has_local),
-            global_branch=_rotated_onto(found.global_branch, seen[1], ~held),
+            local_branch=rotated_onto(found.local_branch, seen[0], ~held & has_local),
+            global_branch=rotated_onto(found.global_branch, seen[1], ~held),
         )
 
     def with_alpha(self, alpha: float) -> Calibration:
@@ -408,79 +309,6 @@ class Calibration:
             None,
             self.spread,
         )
-
-
-def aggregate_frames(
-    aggregator: Aggregator, descriptors: Sequence[np.ndarray], scores: Sequence[np.ndarray]
-) -> np.ndarray:
-    """``n x aggregator.dim`` raw local vectors of ``n`` frames, each written straight into
-    one array (a 10,000-frame VLAD matrix is 650 MB: no list of rows to stack). Descriptors go
-    to the aggregator as stored (float16), which converts them itself."""
-    out = np.empty((len(descriptors), aggregator.dim), np.float32)
-    for row, (d, s) in enumerate(zip(descriptors, scores, strict=True)):
-        out[row] = aggregator.aggregate(np.asarray(d), np.asarray(s, np.float32))
-    return out
-
-
-class StageClock:
-    """Wall and CPU seconds of consecutive stages, each closed by :meth:`lap`."""
-
-    def __init__(self) -> None:
-        self.wall: dict[str, float] = {}
-        self.cpu: dict[str, float] = {}
-        self._mark = (time.perf_counter(), time.process_time())
-
-    def lap(self, stage: str) -> None:
-        """Close ``stage``: the seconds since the previous lap (or the clock's start)."""
-        now = (time.perf_counter(), time.process_time())
-        self.wall[stage] = now[0] - self._mark[0]
-        self.cpu[stage] = now[1] - self._mark[1]
-        self._mark = now
-
-
-def standardised_alpha(alpha: float, spread: tuple[float, float] | None) -> float:
-    """The weight ``a`` of ``[a D, (1 - a) R]`` under which each branch's cosine divided by its
-    impostor spread gets the share ``alpha^2 : (1 - alpha)^2`` (``alpha`` itself without spreads,
-    or at 0 and 1)."""
-    if spread is None or alpha in (0.0, 1.0):
-        return alpha
-    local, global_ = spread
-    ratio = alpha / (1.0 - alpha) * float(np.sqrt(global_ / local))
-    return ratio / (1.0 + ratio)
-
-
-def _cosine_weights(a: float) -> tuple[float, float]:
-    """Each branch's share of the fused cosine that ``[a D, (1 - a) R]`` gives (unit branches)."""
-    total = a * a + (1.0 - a) ** 2
-    return a * a / total, (1.0 - a) ** 2 / total
-
-
-def _spread(cosines: np.ndarray) -> float:
-    """Standard deviation of impostor cosines (floored: a constant branch must not divide by 0)."""
-    return max(float(np.std(cosines)) if len(cosines) else 0.0, 1e-4)
-
-
-def _spread_of(value: object) -> tuple[float, float] | None:
-    """The spreads as saved (None in calibrations saved before they were measured)."""
-    if value is None:
-        return None
-    if not (isinstance(value, list) and len(value) == 2):
-        raise ValueError(f"bad branch spreads {value!r}")
-    local, global_ = (float(v) for v in value)
-    if not (local > 0.0 and global_ > 0.0):
-        raise ValueError(f"bad branch spreads {value!r}")
-    return local, global_
-
-
-def held_out_stretches(robots: Sequence[str], order: np.ndarray, share: float) -> np.ndarray:
-    """A mask of about ``share`` of the frames, in stretches as long as the impostor gap (a
-    twentieth of each robot's sequence, at least 5 frames): every ``1 / share``-th stretch."""
-    _, rank, gap = sequence_positions(robots, order)
-    period = max(2, int(round(1.0 / share)))
-    held = (rank // gap) % period == period // 2
-    if not held.any() or held.all():  # too short a sequence for stretches: single frames
-        held = np.arange(len(rank)) % period == 0
-    return np.asarray(held, bool)
 
 
 def _fit_probe(
@@ -525,13 +353,6 @@ def _impostor_probe(
     return ImpostorProbe(*seen, first, second, in_sample=True)
 
 
-def _rotated_onto(source: np.ndarray, target: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """``source`` rows mapped into ``target``'s coordinates by the orthogonal map that best
-    carries ``source[rows]`` to ``target[rows]`` (orthogonal Procrustes), unit again."""
-    u, _, vt = np.linalg.svd(target[rows].T @ source[rows], full_matrices=False)
-    return l2_normalize(source @ (u @ vt).T)
-
-
 def _fit_branches(
     config: CalibrationConfig,
     aggregator: Aggregator,
@@ -553,13 +374,13 @@ def _fit_branches(
         config,
         aggregator,
         Whitening.fit(
-            _rows_of(local_raw, local_rows),
+            rows_of(local_raw, local_rows),
             config.local,
             seed=config.seed,
             near=near.local_whitening if near is not None else None,
         ),
         Whitening.fit(
-            _rows_of(global_vectors, rows),
+            rows_of(global_vectors, rows),
             config.global_,
             seed=config.seed,
             near=near.global_whitening if near is not None else None,
@@ -568,27 +389,12 @@ def _fit_branches(
     )
 
 
-def _rows_of(matrix: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """``matrix``'s distinct ``rows`` in storage order: ``matrix`` itself, not a copy, when
-    they are all of them (a whitening does not depend on the order of its vectors)."""
-    return matrix if len(rows) == len(matrix) else matrix[np.sort(rows)]
-
-
-def descriptor_sample(
-    descriptors: Sequence[np.ndarray], size: int, rng: np.random.Generator
-) -> np.ndarray:
-    """Up to ``size`` descriptors drawn evenly across frames (float32), in one pass."""
-    per_frame = max(1, int(np.ceil(size / max(len(descriptors), 1))))
-    chunks, dim = [], 0
-    for d in descriptors:  # one pass: a job reads each frame's blob once here
-        dim = d.shape[1]
-        if len(d) == 0:
-            continue
-        take = rng.choice(len(d), size=min(per_frame, len(d)), replace=False)
-        chunks.append(np.asarray(d[np.sort(take)], np.float32))
-    if not chunks:
-        return np.zeros((0, dim), np.float32)
-    sample = np.concatenate(chunks)
-    if len(sample) > size:
-        sample = sample[rng.choice(len(sample), size=size, replace=False)]
-    return sample
+__all__ = [
+    "Calibration",
+    "CalibrationConfig",
+    "CalibrationInputs",
+    "FittedCalibration",
+    "aggregate_frames",
+    "held_out_stretches",
+    "standardised_alpha",
+]

@@ -1,8 +1,9 @@
 """How much memory decoding an image takes, and the budget every decode in a process shares.
 
-A compressed image says nothing of its decoded cost: a 128 KB PNG of 6300 x 6300 pixels is
-159 MB once Pillow holds it (4 bytes a pixel for RGB), and each copy on the way to the networks
-(mode conversion, the array, the float tensors of the two networks) added more, 1.4 GB in all.
+A compressed image says nothing of its decoded cost: a small PNG of many pixels takes 4 bytes
+a pixel once Pillow holds it (RGB), and each copy on the way to the networks (mode conversion,
+the array, the float tensors of the two networks) adds more (measured peaks before and after:
+benchmarks/RESULTS.md, issue 24).
 :func:`service.ml.images.decode_frame` therefore decodes a large JPEG at a reduced scale and
 shrinks any other large image right after decoding (the networks only ever see a few hundred
 pixels a side), so only the decoder's own buffer is full size; :class:`DecodeBudget` bounds what
@@ -25,7 +26,7 @@ from service.errors import ImageTooLarge, Overloaded
 BYTES_PER_PIXEL = {"1": 1, "L": 1, "P": 1, "I;16": 2, "I;16B": 2, "I;16L": 2}
 DEFAULT_BYTES_PER_PIXEL = 4
 # Pillow's WebP decoder holds the frame as RGBA three more times on the way (libwebp's buffer,
-# the bytes it returns, the file object read from); measured: 609 MB for 6300 x 6300.
+# the bytes it returns, the file object read from), as measured (benchmarks/bomb_memory.py).
 DECODER_COPIES = {"WEBP": 4}
 # After the full-size decode: the shrunk image, its orientation or RGB copy (4 bytes a pixel
 # each), the array's bytes and the writable array handed to the networks (3 bytes a pixel each).

@@ -5,11 +5,11 @@ robot's sequence, in stretches a twentieth of it long: :func:`held_out_stretches
 the validation frames that pick the best epoch come from the rest, so no step of training or
 model selection sees a held-out place. The not-worse gate then compares the active and the new
 heads on those places. The first gate judged on the frames beside the shots (one per submap
-next to them), where a version that had learnt the shots by heart looked as good as any: on
-Nordland (summer map, winter queries) map-only retraining lowered Recall@1 0.323 -> 0.308 and
-passed it (benchmarks/RESULTS.md, "Retraining that does not forget"). Nearest-frame accuracy
-alone saturates on a single traversal (every version that does not wreck the space finds a
-held-out frame's own neighbour: 1.000 -> 1.000 on cohog200 while the queries lost 0.015), so the
+next to them), where a version that had learnt the shots by heart looked as good as any and
+passed versions that lowered the queries' Recall@1 (benchmarks/archive/RESULTS-history.md,
+"Retraining that does not forget"). Nearest-frame accuracy alone saturates on a single
+traversal (every version that does not wreck the space finds a held-out frame's own
+neighbour, also while the queries lose), so the
 gate also compares the mean average precision of each held-out frame's whole neighbourhood,
 which still moves when the top-1 does not.
 """

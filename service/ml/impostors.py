@@ -16,7 +16,7 @@ sampled impostor stay finite and ordered.
 Small atlases have few distinct impostor pairs: pairs are never counted twice, and the tail's
 scale is never below what a normal distribution with the body's median and spread gives beyond
 the tail's start; where fewer than 50 pairs lie in the tail, twice that (measured impostor
-tails are heavier than normal ones: 2.2x on the development sets), so a handful of pairs
+tails are heavier than normal ones on the development sets), so a handful of pairs
 cannot make every match look astronomically rare.
 """
 

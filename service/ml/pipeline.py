@@ -18,6 +18,7 @@ from service.ml.aggregation import aggregate_descriptors
 from service.ml.backbones import GlobalBackbone, build_backbone
 from service.ml.batching import MicroBatcher
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.fusion import weighted_branches
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.local_extractors import LocalExtractor, build_local_extractor
 from service.ml.precision import Precision, resolve_precision
@@ -56,8 +57,8 @@ class FeaturePipeline:
             else None
         )
         # Side by side only while this is the one frame being extracted: under load every core
-        # already runs a frame, and a second thread per frame only adds hand-offs (8 robots
-        # ingesting: 25.4-26.5 frames/s side by side against 26.9-28.4 one after the other).
+        # already runs a frame, and a second thread per frame only adds hand-offs (measured
+        # with 8 robots ingesting: benchmarks/RESULTS.md).
         self._running = 0
         self._running_lock = threading.Lock()
 
@@ -210,9 +211,8 @@ def _bf16_weights(
     fusion, mlp = heads.fusion, heads.similarity.mlp
     first, last = mlp[0], mlp[2]
     assert isinstance(first, nn.Linear) and isinstance(last, nn.Linear)
-    alpha = fusion.alpha
-    stacked = torch.cat(
-        [alpha * fusion.project_local.weight, (1 - alpha) * fusion.project_global.weight], dim=1
+    stacked = weighted_branches(
+        fusion.project_local.weight, fusion.project_global.weight, fusion.alpha
     )
 
     def layer(linear: nn.Linear) -> _Bf16Linear:

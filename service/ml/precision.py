@@ -50,13 +50,13 @@ class ModelPolicy:
     float_outputs: bool = True
 
 
-# DISK: bf16 about twice as fast (the CPU's bf16 dot products), its dense output read in place. XFeat and MobileNetV2 one frame at a time: bf16 measured no
-# faster, and MobileNetV2's bf16 vectors moved a harness's R@1 beyond the guard. ResNet-18 is
-# unmeasured (no weights on the development machine): fp32.
+# DISK: bf16 where the CPU has bf16 dot products, its dense output read in place. XFeat and
+# MobileNetV2 one frame at a time: bf16 measured no faster, and MobileNetV2's bf16 vectors moved
+# a harness's R@1 beyond the guard. ResNet-18 is unmeasured (no weights here): fp32. Figures:
+# benchmarks/RESULTS.md and benchmarks/archive/RESULTS-history.md.
 MODEL_POLICIES: dict[str, ModelPolicy] = {
     # fp32 DISK in NCHW: its fp32 InstanceNorms copy a channels-last input to NCHW and back,
-    # 0.80-0.85x of kornia's speed at 512 px on an AVX2 EPYC (NCHW: 0.93-1.04x; RESULTS.md,
-    # fifth session)
+    # slower than NCHW on an AVX2 EPYC (benchmarks/archive/RESULTS-history.md)
     "disk": ModelPolicy(float_outputs=False, channels_last_fp32=False),
     "xfeat": ModelPolicy(bf16=False, channels_last=False),
     "mobilenetv2": ModelPolicy(bf16=False, fold_batchnorm=True),

@@ -25,105 +25,24 @@ import functools
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import ConfigDict, Field
-from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from service.ml.fusion import weighted_branches
 from service.ml.heads import ClassificationHead, HeadsConfig, LoopNetHeads
 from service.ml.impostors import sequence_positions
-
-TrainablePart = Literal["fusion", "similarity", "classifier"]
-TRAINABLE_PARTS: tuple[TrainablePart, ...] = ("fusion", "similarity", "classifier")
-MAX_SEED = 2**64 - 1
-
-
-@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
-class TrainingConfig:
-    """Parameters of one retraining run, with their bounds: the API's job parameters are this
-    schema, so a value either side accepts, both do."""
-
-    shots: int = Field(default=5, ge=1, le=100, description="Training frames (shots) per submap.")
-    epochs: int = Field(
-        default=100, ge=1, le=2000, description="Most epochs; early stopping may end sooner."
-    )
-    learning_rate: float = Field(default=3e-3, gt=0, le=1)
-    weight_decay: float = Field(default=1e-4, ge=0, le=1)
-    classification_weight: float = Field(
-        default=1.0, ge=0, le=100, description="Cross-entropy weight."
-    )
-    contrastive_weight: float = Field(
-        default=1.0, ge=0, le=100, description="Contrastive loss weight."
-    )
-    margin: float = Field(
-        default=1.0, gt=0, le=2, description="Contrastive margin m (unit-sphere distance)."
-    )
-    embed_dim: int | None = Field(
-        default=None,
-        ge=2,
-        le=4096,
-        description="Size of the trained fused embedding; unset: the active heads' fused "
-        "input size, so training starts from the active embedding itself.",
-    )
-    train: tuple[TrainablePart, ...] = Field(
-        default_factory=lambda: TRAINABLE_PARTS,
-        min_length=1,
-        description="Which layers are trained; the others keep their initialisation.",
-    )
-    noise_std: float = Field(
-        default=0.01, ge=0, le=1, description="Gaussian noise on stored vectors."
-    )
-    feature_dropout: float = Field(
-        default=0.1, ge=0, lt=1, description="Feature dropout on stored vectors."
-    )
-    patience: int = Field(
-        default=15, ge=1, le=1000, description="Epochs without validation gain before stopping."
-    )
-    seed: int = Field(default=0, ge=0)
-    # Frame-level term: two augmented views of each shot must find each other among all the
-    # shots (instance discrimination), so pulling a submap together cannot merge its frames.
-    # Off by default: it did not stop map-only retraining from lowering Recall@1 on every K
-    # (see benchmarks/RESULTS.md); the job's held-out not-worse check is the safeguard.
-    frame_weight: float = Field(
-        default=0.0, ge=0, le=100, description="Weight of the frame-level (instance) term."
-    )
-    frame_temperature: float = Field(
-        default=0.1, gt=0, le=10, description="Temperature of the frame-level term."
-    )
-    keep_weight: float = Field(
-        default=0.0,
-        ge=0,
-        le=100,
-        description="Weight of the term that keeps the trained cosines of the shots' "
-        "non-positive pairs near the starting heads' (against forgetting); 0: off.",
-    )
-    positive_window: int = Field(
-        default=2,
-        ge=0,
-        le=1000,
-        description="Contrastive positives: frames of one submap at most this many frames "
-        "apart in their robot's sequence; 0: the first design (every pair of a submap "
-        "positive, every pair of different submaps negative).",
-    )
-
-    def __post_init__(self) -> None:
-        if self.classification_weight == 0 and self.contrastive_weight == 0:
-            raise ValueError("at least one loss weight must be positive")
-        if self.seed > MAX_SEED:  # not a schema bound: JSON Schema would round it to a float
-            raise ValueError(f"seed must be in 0..{MAX_SEED} (64 bits, what torch accepts)")
-
-    def check_fits(self, base: HeadsConfig) -> None:
-        """Refuse an ``embed_dim`` the atlas's features cannot fill: the fusion starts from a
-        PCA of the fused input, which has only ``local_dim + global_dim`` directions."""
-        fused_input = base.local_dim + base.global_dim
-        if self.embed_dim is not None and self.embed_dim > fused_input:
-            raise ValueError(
-                f"embed_dim {self.embed_dim} exceeds the atlas's fused input size {fused_input} "
-                f"({base.local_dim} local + {base.global_dim} global)"
-            )
+from service.ml.training_config import TRAINABLE_PARTS, TrainablePart, TrainingConfig
+from service.ml.training_losses import (
+    augment,
+    contrastive_loss,
+    contrastive_pairs,
+    frame_loss,
+    keep_loss,
+    losses,
+)
 
 
 @dataclass
@@ -200,9 +119,7 @@ def pca_init(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, seed: 
     if len(local) > PCA_SAMPLE:
         pick = np.random.default_rng(seed).choice(len(local), PCA_SAMPLE, replace=False)
         local, global_ = local[pick], global_[pick]
-    stacked = torch.from_numpy(
-        np.concatenate([alpha * local, (1 - alpha) * global_], axis=1).astype(np.float32)
-    )
+    stacked = torch.from_numpy(weighted_branches(local, global_, alpha).astype(np.float32))
     mean = stacked.mean(dim=0)
     rows = min(config.fused_dim, *stacked.shape)
     torch.manual_seed(seed)  # svd_lowrank starts from a random subspace
@@ -216,88 +133,6 @@ def pca_init(heads: LoopNetHeads, local: np.ndarray, global_: np.ndarray, seed: 
         fusion.project_local.weight.copy_(basis_t[:, : config.local_dim])
         fusion.project_global.weight.copy_(basis_t[:, config.local_dim :])
         fusion.bias.copy_(-(basis_t @ mean))
-
-
-def contrastive_pairs(
-    data: TrainingData, idx: np.ndarray, window: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Boolean ``n x n`` masks of positive and negative pairs among the frames ``idx``.
-
-    Positives: two frames of one submap and one robot at most ``window`` frames apart in the
-    robot's sequence (its every frame counts, shots or not), and frames of one submap from
-    different robots (a revisit labelled with its submap: nothing tells which of its frames it
-    sees). Negatives: frames of different submaps that are different places by sequence too
-    (other robots, or one robot's frames at least the impostor gap apart). Neighbours on
-    either side of a submap boundary are neither, and so are a submap's far frames: nothing
-    forces them together or apart. ``window`` 0 is the first design: every pair of a submap
-    positive, every pair of different submaps negative.
-    """
-    submaps = data.submaps[idx]
-    same_submap = submaps[:, None] == submaps[None, :]
-    if window == 0:
-        positives, negatives = same_submap.copy(), ~same_submap
-    else:
-        codes, rank, gap = (part[idx] for part in data.sequence)
-        same_robot = codes[:, None] == codes[None, :]
-        apart = np.abs(rank[:, None] - rank[None, :])
-        positives = same_submap & ((apart <= window) | ~same_robot)
-        negatives = ~same_submap & (~same_robot | (apart >= gap[:, None]))
-    np.fill_diagonal(positives, False)
-    return torch.from_numpy(positives), torch.from_numpy(negatives)
-
-
-def contrastive_loss(
-    embeddings: torch.Tensor, positives: torch.Tensor, negatives: torch.Tensor, margin: float
-) -> torch.Tensor:
-    """Mean of ``d^2`` over the positive pairs plus mean of ``max(0, m - d)^2`` over the
-    negative ones (boolean ``n x n`` masks, e.g. from :func:`contrastive_pairs`)."""
-    distances = torch.cdist(embeddings, embeddings).clamp_min(1e-9)
-    loss = embeddings.new_zeros(())
-    if positives.any():
-        loss = loss + distances[positives].pow(2).mean()
-    if negatives.any():
-        loss = loss + F.relu(margin - distances[negatives]).pow(2).mean()
-    return loss
-
-
-def frame_loss(first: torch.Tensor, second: torch.Tensor, temperature: float) -> torch.Tensor:
-    """Cross-entropy of each frame's first view finding its own second view among all frames."""
-    logits = F.normalize(first, dim=-1) @ F.normalize(second, dim=-1).T / temperature
-    return F.cross_entropy(logits, torch.arange(len(first)))
-
-
-def _augment(x: torch.Tensor, config: TrainingConfig, generator: torch.Generator) -> torch.Tensor:
-    """Noise and feature dropout on stored (unit) vectors, then back to unit length."""
-    if config.noise_std > 0:
-        x = x + config.noise_std * torch.randn(x.shape, generator=generator)
-    if config.feature_dropout > 0:
-        keep = torch.rand(x.shape, generator=generator) >= config.feature_dropout
-        x = x * keep
-    return F.normalize(x, dim=-1)
-
-
-def _losses(
-    heads: LoopNetHeads,
-    local: torch.Tensor,
-    global_: torch.Tensor,
-    targets: torch.Tensor,
-    pairs: tuple[torch.Tensor, torch.Tensor],
-    config: TrainingConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    fused = heads.fusion(local, global_)
-    assert heads.classifier is not None
-    classification = F.cross_entropy(heads.classifier(fused), targets)
-    contrastive = contrastive_loss(heads.similarity(fused), *pairs, config.margin)
-    return classification, contrastive
-
-
-def keep_loss(embeddings: torch.Tensor, start: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
-    """Mean squared change of the cosines of ``pairs`` (a boolean ``n x n`` mask) from the
-    ``start`` cosines: a distillation of the starting heads on the pairs training does not pull
-    together, so pushing some places apart cannot reshape the rest of the space freely."""
-    if not pairs.any():
-        return embeddings.new_zeros(())
-    return (embeddings @ embeddings.T - start)[pairs].pow(2).mean()
 
 
 VALIDATION_LOSS_SAMPLE = 1024  # validation frames in the (quadratic) contrastive term
@@ -443,10 +278,10 @@ def train_heads(
             raise TrainingCancelled(f"cancelled at epoch {epoch}")
         heads.train()
         optimiser.zero_grad()
-        classification, contrastive = _losses(
+        classification, contrastive = losses(
             heads,
-            _augment(local[train_idx], config, generator),
-            _augment(global_[train_idx], config, generator),
+            augment(local[train_idx], config, generator),
+            augment(global_[train_idx], config, generator),
             targets[train_idx],
             pairs,
             config,
@@ -459,8 +294,8 @@ def train_heads(
         if config.frame_weight > 0 and len(train_idx) > 1:
             first, second = (
                 heads.embed(
-                    _augment(local[train_idx], config, generator),
-                    _augment(global_[train_idx], config, generator),
+                    augment(local[train_idx], config, generator),
+                    augment(global_[train_idx], config, generator),
                 )
                 for _ in range(2)
             )
@@ -531,3 +366,21 @@ def _init_prototypes(
         prototypes.index_add_(0, targets, fused)
         classifier.linear.weight.copy_(10.0 * F.normalize(prototypes, dim=-1))
         classifier.linear.bias.zero_()
+
+
+# what the jobs, the harness and the tests use, wherever it is defined
+__all__ = [
+    "TRAINABLE_PARTS",
+    "TrainablePart",
+    "TrainingCancelled",
+    "TrainingConfig",
+    "TrainingData",
+    "TrainingResult",
+    "contrastive_loss",
+    "contrastive_pairs",
+    "frame_loss",
+    "keep_loss",
+    "pca_init",
+    "split_shots",
+    "train_heads",
+]

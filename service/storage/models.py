@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 from datetime import UTC, datetime
 from typing import Any
 
@@ -22,14 +21,11 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
+from service.domain.statuses import JobStatus as JobStatus
+
 
 def utcnow() -> datetime:
     return datetime.now(UTC)
-
-
-# Ids are INTEGER primary keys: 32-bit on PostgreSQL, so no row has a larger id (a lookup of
-# one must be refused before it reaches the database, which raises "integer out of range").
-MAX_ROW_ID = 2**31 - 1
 
 
 class UTCDateTime(TypeDecorator[datetime]):
@@ -164,16 +160,6 @@ class ModelVersion(Base):
     weights_path: Mapped[str | None] = mapped_column(String(1024))
     is_active: Mapped[bool] = mapped_column(Boolean, default=False)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-
-
-class JobStatus(enum.StrEnum):
-    """Where a job stands; the row stores the value."""
-
-    QUEUED = "queued"
-    RUNNING = "running"
-    SUCCEEDED = "succeeded"
-    FAILED = "failed"
-    CANCELLED = "cancelled"
 
 
 class Job(Base):

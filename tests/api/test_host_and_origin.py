@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from service.api.app import create_app
-from service.fleet.keys import Role, issue
+from service.fleet.keys import KeyAdmin, Role
 from service.storage.models import ApiKey
 from tests.api.helpers import create_atlas, stored_state
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
@@ -115,7 +115,9 @@ def test_the_first_admin_key_comes_only_from_the_cli(open_service: TestClient) -
     assert keys_in(open_service) == 0
     assert open_service.get("/v1/atlases").status_code == 200  # still open: nothing changed
     sessions = open_service.app.state.runtime.sessions  # type: ignore[attr-defined]
-    root = issue(sessions, name="root", role=Role.admin, atlases=[]).token  # what the CLI does
+    root = (
+        KeyAdmin(sessions).issue(name="root", role=Role.admin, atlases=[]).token
+    )  # what the CLI does
     open_service.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
     created = open_service.post(
         "/v1/keys", json={"name": "ops", "role": "operator"}, headers={"X-API-Key": root}

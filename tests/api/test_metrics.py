@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.api.app import create_app
-from service.fleet.keys import Role, issue
+from service.fleet.keys import KeyAdmin, Role
 from service.storage import jobs
 from service.storage.db import transaction
 from tests.api.helpers import add_frame, create_atlas
@@ -124,8 +124,8 @@ def test_metrics_can_require_an_operator_key(tmp_path, pipeline) -> None:  # typ
         wait_ready(client)
         assert client.get("/metrics").status_code == 401
         sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
-        robot = issue(sessions, name="r", role=Role.robot, atlases=[]).token
-        operator = issue(sessions, name="o", role=Role.operator, atlases=[]).token
+        robot = KeyAdmin(sessions).issue(name="r", role=Role.robot, atlases=[]).token
+        operator = KeyAdmin(sessions).issue(name="o", role=Role.operator, atlases=[]).token
         assert client.get("/metrics", headers={"X-API-Key": robot}).status_code == 403
         answer = client.get("/metrics", headers={"X-API-Key": operator})
         assert answer.status_code == 200
@@ -194,7 +194,7 @@ def test_public_metrics_name_no_atlas_without_a_key(tmp_path, pipeline) -> None:
     with TestClient(create_app(settings, pipeline=pipeline)) as client:
         wait_ready(client)
         sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
-        admin = issue(sessions, name="a", role=Role.admin, atlases=[]).token
+        admin = KeyAdmin(sessions).issue(name="a", role=Role.admin, atlases=[]).token
         key = {"X-API-Key": admin}
         for name in ("secret-site", "other-site"):
             assert client.post("/v1/atlases", json={"name": name}, headers=key).status_code == 201
@@ -209,6 +209,6 @@ def test_public_metrics_name_no_atlas_without_a_key(tmp_path, pipeline) -> None:
         assert "secret-site" not in wrong.text
         named = series(client, **key)
         assert ("loopnet_index_frames", frozenset({("atlas", "secret-site")})) in named
-        robot = issue(sessions, name="r", role=Role.robot, atlases=["other-site"]).token
+        robot = KeyAdmin(sessions).issue(name="r", role=Role.robot, atlases=["other-site"]).token
         scoped = client.get("/metrics", headers={"X-API-Key": robot}).text
         assert 'atlas="other-site"' in scoped and "secret-site" not in scoped

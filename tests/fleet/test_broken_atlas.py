@@ -9,7 +9,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.fleet.keys import Role, issue
+from service.fleet.keys import KeyAdmin, Role
 from service.fleet.snapshot_restore import RESTORING_PREFIX
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
@@ -59,7 +59,9 @@ def test_a_broken_atlas_is_isolated_and_repaired_offline(
         assert sorted(a["name"] for a in listing.json()) == ["healthy", "restored"]
         # issue 24: once keys are on, a caller without one learns only how many
         sessions = client.app.state.runtime.sessions  # type: ignore[attr-defined]
-        key = {"X-API-Key": issue(sessions, name="ops", role=Role.operator, atlases=[]).token}
+        key = {
+            "X-API-Key": KeyAdmin(sessions).issue(name="ops", role=Role.operator, atlases=[]).token
+        }
         client.app.state.authenticator._keys_exist = None  # type: ignore[attr-defined]
         anonymous = client.get("/v1/ready").json()
         assert anonymous["unavailable_atlases"] == {} and "restored" not in str(anonymous)

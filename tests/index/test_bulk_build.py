@@ -244,11 +244,11 @@ def test_a_failed_k_means_leaves_the_index_empty_and_usable(
     vectors = np.random.default_rng(0).standard_normal((400, EMBED)).astype(np.float32)
     vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
 
-    def untrainable(self: AtlasIndex, size: int) -> Any:
+    def untrainable(self: IndexPolicy, dim: int, size: int) -> Any:
         raise MemoryError("k-means")
 
     with monkeypatch.context() as patch:
-        patch.setattr(AtlasIndex, "_ivf_like", untrainable)
+        patch.setattr(IndexPolicy, "new_ivf", untrainable)
         with pytest.raises(MemoryError):
             index.prepare(400, vectors)
     assert index.exact and index.size == 0
@@ -264,7 +264,7 @@ def test_a_failed_background_rebuild_keeps_the_old_index_serving(
     vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
     index.add(np.arange(90), vectors[:90], ["r"] * 90)
 
-    def untrainable(self: AtlasIndex, size: int) -> Any:
+    def untrainable(self: IndexPolicy, dim: int, size: int) -> Any:
         class Broken:
             is_trained = False
 
@@ -273,7 +273,7 @@ def test_a_failed_background_rebuild_keeps_the_old_index_serving(
 
         return Broken()
 
-    monkeypatch.setattr(AtlasIndex, "_ivf_like", untrainable)
+    monkeypatch.setattr(IndexPolicy, "new_ivf", untrainable)
     index.add(np.arange(90, 400), vectors[90:], ["r"] * 310)  # past the threshold: a rebuild
     index.wait_rebuilt()
     assert index.exact and index.size == 400

@@ -12,8 +12,8 @@ import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.jobs.queue import Queue
-from service.jobs.recovery import recover_jobs
+from service.runtime.queue import Queue
+from service.runtime.recovery import recover_jobs
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database

@@ -109,7 +109,7 @@ def test_job_api_validation(client: TestClient) -> None:
 def test_the_worker_logs_a_job_cancelled_before_it_ran_as_not_run(
     client: TestClient, settings, caplog
 ) -> None:  # type: ignore[no-untyped-def]
-    from service.jobs.queue import Queue
+    from service.runtime.queue import Queue
 
     caplog.set_level(logging.INFO)
     atlas_with_two_submaps(client)

@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 from huey.consumer import Worker
 
-from service.jobs.messages import RejectedMessage
-from service.jobs.queue import Queue
+from service.runtime.messages import RejectedMessage
+from service.runtime.queue import Queue
 from tests.conftest import make_settings
 
 

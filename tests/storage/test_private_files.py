@@ -7,7 +7,7 @@ from pathlib import Path
 
 from sqlalchemy import text
 
-from service.jobs.queue import Queue
+from service.runtime.queue import Queue
 from service.storage.db import make_engine, upgrade_database
 from tests.conftest import make_settings
 

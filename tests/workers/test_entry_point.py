@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import workers.__main__ as entry
-from service.jobs.worker import run_worker
+from service.runtime.worker import run_worker
 
 ROOT = Path(__file__).resolve().parents[2]
 

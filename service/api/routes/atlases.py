@@ -9,7 +9,6 @@ from fastapi import APIRouter, Response, status
 from service.api.auth import AdminAccess, OperatorAccess, RobotAccess, UnscopedAdminAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
-from service.atlas import reads
 from service.atlas.model_versions import VersionConfig
 
 if TYPE_CHECKING:
@@ -28,17 +27,17 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
 )
 def create_atlas(body: AtlasIn, service: ServiceDep, _: UnscopedAdminAccess) -> AtlasOut:
     service.create_atlas(body.name, body.description)
-    return AtlasOut(**reads.atlas_summary(service.sessions, body.name))
+    return AtlasOut(**service.reads.atlas_summary(body.name))
 
 
 @router.get("/atlases", response_model=list[AtlasOut], summary="List atlases")
 def list_atlases(service: ServiceDep, caller: RobotAccess) -> list[AtlasOut]:
-    return [AtlasOut(**s) for s in reads.atlas_summaries(service.sessions, caller.may_use)]
+    return [AtlasOut(**s) for s in service.reads.atlas_summaries(caller.may_use)]
 
 
 @router.get("/atlases/{atlas}", response_model=AtlasOut, responses=NOT_FOUND)
 def get_atlas(atlas: str, service: ServiceDep, _: RobotAccess) -> AtlasOut:
-    return AtlasOut(**reads.atlas_summary(service.sessions, atlas))
+    return AtlasOut(**service.reads.atlas_summary(atlas))
 
 
 @router.delete(
@@ -66,7 +65,7 @@ def create_submap(atlas: str, body: SubmapIn, service: ServiceDep, _: RobotAcces
 
 @router.get("/atlases/{atlas}/submaps", response_model=list[SubmapOut], responses=NOT_FOUND)
 def list_submaps(atlas: str, service: ServiceDep, _: RobotAccess) -> list[SubmapOut]:
-    rows = reads.submaps_with_counts(service.sessions, atlas)
+    rows = service.reads.submaps_with_counts(atlas)
     return [SubmapOut(name=s.name, frames=n, created_at=s.created_at) for s, n in rows]
 
 
@@ -100,7 +99,7 @@ def model_version_out(version: ModelVersion) -> ModelVersionOut:
     summary="List the atlas's model versions",
 )
 def list_models(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[ModelVersionOut]:
-    return [model_version_out(v) for v in reads.model_versions(service.sessions, atlas)]
+    return [model_version_out(v) for v in service.reads.model_versions(atlas)]
 
 
 @router.post(

@@ -20,8 +20,6 @@ from service.api.schemas_browse import (
     MatchedFrameOut,
     RobotOut,
 )
-from service.atlas import browse
-from service.atlas.closure_matches import closure_matches
 from service.ml import thumbnails
 
 router = APIRouter(tags=["browse"])
@@ -52,9 +50,7 @@ def list_frames(
     offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> list[FrameOut]:
-    records = browse.frames(
-        service.sessions, atlas, robot=robot, submap=submap, offset=offset, limit=limit
-    )
+    records = service.browse.frames(atlas, robot=robot, submap=submap, offset=offset, limit=limit)
     return [frame_out(record) for record in records]
 
 
@@ -73,7 +69,7 @@ def list_robots(atlas: str, service: ServiceDep, _: RobotAccess) -> list[RobotOu
             last_timestamp=row.last_timestamp,
             last_frame_at=row.last_frame_at,
         )
-        for row in browse.robots(service.sessions, atlas)
+        for row in service.browse.robots(atlas)
     ]
 
 
@@ -90,7 +86,7 @@ def keypoints(
     _: RobotAccess,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 500,
 ) -> KeypointsOut:
-    found = browse.keypoints(service.sessions, atlas, frame_id, limit)
+    found = service.browse.keypoints(atlas, frame_id, limit)
     return KeypointsOut(
         frame_id=found.frame_id,
         width=found.width,
@@ -110,7 +106,7 @@ def keypoints(
     summary="A frame's thumbnail (a placeholder for frames stored without one)",
 )
 def thumbnail(atlas: str, frame_id: RowId, service: ServiceDep, _: RobotAccess) -> Response:
-    return _jpeg(browse.frame_thumbnail(service.sessions, atlas, frame_id))
+    return _jpeg(service.browse.frame_thumbnail(atlas, frame_id))
 
 
 def _jpeg(jpeg: bytes | None) -> Response:
@@ -135,7 +131,7 @@ def _jpeg(jpeg: bytes | None) -> Response:
 def loop_closure(
     atlas: str, closure_id: RowId, service: ServiceDep, _: RobotAccess
 ) -> LoopClosureDetailOut:
-    found = browse.loop_closure(service.sessions, atlas, closure_id)
+    found = service.browse.loop_closure(atlas, closure_id)
     row = found.closure
     return LoopClosureDetailOut(
         id=row.id,
@@ -172,9 +168,7 @@ def loop_closure_matches(
     _: RobotAccess,
     limit: Annotated[int, Query(ge=1, le=10_000, description="Inlier pairs at most.")] = 1000,
 ) -> ClosureMatchesOut:
-    found = closure_matches(
-        service.sessions, service.frames, service.verification, atlas, closure_id, limit
-    )
+    found = service.closure_matches(atlas, closure_id, limit)
     return ClosureMatchesOut(
         closure_id=found.closure_id,
         query_frame=MatchedFrameOut(**asdict(found.query_frame)),
@@ -199,4 +193,4 @@ def loop_closure_matches(
 def loop_closure_thumbnail(
     atlas: str, closure_id: RowId, service: ServiceDep, _: RobotAccess
 ) -> Response:
-    return _jpeg(browse.closure_thumbnail(service.sessions, atlas, closure_id))
+    return _jpeg(service.browse.closure_thumbnail(atlas, closure_id))

@@ -28,12 +28,11 @@ from service.api.forms import (
     frame_fields,
     intrinsics_from_form,
 )
-from service.api.routes.frames import get_frame
+from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
 from service.api.uploads import read_image_upload
 from service.atlas import reads
 from service.atlas.catalog import AtlasService
-from service.atlas.loop_closures import record_if_inter_robot
 from service.features_payload import decode_features
 from service.ml.features import FrameFeatures
 
@@ -53,7 +52,7 @@ PAYLOAD_DOC = (
 def read_features(service: AtlasService, atlas: str, upload: UploadFile) -> FrameFeatures:
     """The checked features of a payload posted for ``atlas`` (a 4xx before any write)."""
     data = read_image_upload(upload, service.settings.max_upload_bytes)
-    signature = reads.feature_signature(service.sessions, atlas)
+    signature = service.reads.feature_signature(atlas)
     return decode_features(data, signature, max_image_pixels=service.settings.max_image_pixels)
 
 
@@ -80,7 +79,7 @@ def add_frame_features(
         fields=frame_fields(access, submap, robot_id, timestamp, pose, intrinsics),
         features=read_features(service, atlas, features),
     )
-    return get_frame(atlas, frame.id, service, access)
+    return frame_out(reads.FrameRecord(atlas, submap, frame))
 
 
 @router.post(
@@ -112,6 +111,7 @@ def query_features(
         atlas_name=atlas,
         features=decoded,
         k=k,
+        robot_id=robot_id or None,
         query_filter=query_filter,
         intrinsics=intrinsics_from_form(intrinsics),
         sequence_length=sequence_length,
@@ -122,7 +122,4 @@ def query_features(
         **result.timings_ms,
         "total": round((time.perf_counter() - start) * 1000.0, 3),
     }
-    record_if_inter_robot(
-        service.sessions, robot_id=robot_id or None, result=result, source="query"
-    )
     return QueryOut.model_validate(asdict(result))

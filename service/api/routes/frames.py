@@ -52,7 +52,7 @@ def add_frame(
         fields=frame_fields(caller, submap, robot_id, timestamp, pose, intrinsics),
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
     )
-    return frame_out(reads.frame_record(service.sessions, atlas, frame.id))
+    return frame_out(reads.FrameRecord(atlas, submap, frame))  # no read-back: names are exact
 
 
 @router.get(
@@ -62,7 +62,7 @@ def add_frame(
     summary="A frame's metadata",
 )
 def get_frame(atlas: str, frame_id: RowId, service: ServiceDep, _: RobotAccess) -> FrameOut:
-    return frame_out(reads.frame_record(service.sessions, atlas, frame_id))
+    return frame_out(service.reads.frame_record(atlas, frame_id))
 
 
 def frame_out(record: reads.FrameRecord) -> FrameOut:

@@ -9,7 +9,6 @@ from fastapi import APIRouter, status
 from service.api.auth import OperatorAccess
 from service.api.deps import RowId, RuntimeDep, ServiceDep
 from service.api.schemas import ErrorOut, JobIn, JobOut
-from service.jobs import submit
 
 if TYPE_CHECKING:
     from service.storage.models import Job
@@ -39,24 +38,22 @@ def job_out(atlas: str, job: Job) -> JobOut:
 def submit_job(
     atlas: str, body: JobIn, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
 ) -> JobOut:
-    job = submit.submit_job(
-        service.sessions,
-        runtime.queue,
-        atlas=atlas,
-        kind=body.kind,
-        params=body.job_params(),
-    )
+    job = runtime.jobs.submit(atlas, body.kind, body.job_params())
     return job_out(atlas, job)
 
 
 @router.get("/atlases/{atlas}/jobs", response_model=list[JobOut], responses=ERRORS)
-def list_jobs(atlas: str, service: ServiceDep, _: OperatorAccess) -> list[JobOut]:
-    return [job_out(atlas, job) for job in submit.list_jobs(service.sessions, atlas=atlas)]
+def list_jobs(
+    atlas: str, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
+) -> list[JobOut]:
+    return [job_out(atlas, job) for job in runtime.jobs.list(atlas)]
 
 
 @router.get("/atlases/{atlas}/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
-def get_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
-    return job_out(atlas, submit.get_job(service.sessions, atlas=atlas, job_id=job_id))
+def get_job(
+    atlas: str, job_id: RowId, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
+) -> JobOut:
+    return job_out(atlas, runtime.jobs.get(atlas, job_id))
 
 
 @router.post(
@@ -65,5 +62,7 @@ def get_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -
     responses=ERRORS,
     summary="Cancel a queued job, or ask a running one to stop",
 )
-def cancel_job(atlas: str, job_id: RowId, service: ServiceDep, _: OperatorAccess) -> JobOut:
-    return job_out(atlas, submit.cancel_job(service.sessions, atlas=atlas, job_id=job_id))
+def cancel_job(
+    atlas: str, job_id: RowId, service: ServiceDep, runtime: RuntimeDep, _: OperatorAccess
+) -> JobOut:
+    return job_out(atlas, runtime.jobs.cancel(atlas, job_id))

@@ -16,8 +16,7 @@ from fastapi import APIRouter, status
 from service.api.auth import AdminAccess
 from service.api.deps import RowId, RuntimeDep
 from service.api.schemas import ApiKeyIn, ApiKeyOut, ErrorOut, NewApiKeyOut
-from service.errors import Forbidden, NotReady
-from service.fleet import keys
+from service.errors import Forbidden
 from service.fleet.keys import Role
 
 if TYPE_CHECKING:
@@ -31,12 +30,6 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {**ERRORS, 404: {"model": ErrorOut}
 
 def key_out(key: ApiKey) -> ApiKeyOut:
     return ApiKeyOut(**{f: getattr(key, f) for f in ApiKeyOut.model_fields})
-
-
-def _sessions(runtime: RuntimeDep):  # type: ignore[no-untyped-def]
-    if runtime.sessions is None:
-        raise NotReady("the service is starting")
-    return runtime.sessions
 
 
 @router.post(
@@ -54,8 +47,7 @@ def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKe
             "keys are created over HTTP only with an admin key; create the first one on the "
             "server: loopnet keys create --role admin --name NAME"
         )
-    new = keys.issue(
-        _sessions(runtime),
+    new = runtime.key_admin.issue(
         name=body.name,
         role=Role[body.role],
         atlases=body.atlases,
@@ -66,7 +58,7 @@ def create(body: ApiKeyIn, runtime: RuntimeDep, caller: AdminAccess) -> NewApiKe
 
 @router.get("/keys", response_model=list[ApiKeyOut], responses=ERRORS, summary="List API keys")
 def list_all(runtime: RuntimeDep, caller: AdminAccess) -> list[ApiKeyOut]:
-    return [key_out(key) for key in keys.listing(_sessions(runtime), viewer=caller)]
+    return [key_out(key) for key in runtime.key_admin.listing(viewer=caller)]
 
 
 @router.delete(
@@ -76,4 +68,4 @@ def list_all(runtime: RuntimeDep, caller: AdminAccess) -> list[ApiKeyOut]:
     summary="Revoke an API key",
 )
 def revoke(key_id: RowId, runtime: RuntimeDep, caller: AdminAccess) -> ApiKeyOut:
-    return key_out(keys.revoke(_sessions(runtime), key_id=key_id, revoker=caller))
+    return key_out(runtime.key_admin.revoke(key_id=key_id, revoker=caller))

@@ -10,7 +10,6 @@ from fastapi import APIRouter, Query
 from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, LoopClosureOut
-from service.atlas import reads
 from service.atlas.names import validate_name
 
 router = APIRouter(tags=["loop closures"])
@@ -40,7 +39,7 @@ def loop_closures(
         validate_name("robot", robot)
     if since is not None and since.tzinfo is None:
         since = since.replace(tzinfo=UTC)
-    rows = reads.loop_closures(service.sessions, atlas, robot=robot, since=since, limit=limit)
+    rows = service.reads.loop_closures(atlas, robot=robot, since=since, limit=limit)
     return [
         LoopClosureOut(
             id=row.id,

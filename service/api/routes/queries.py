@@ -24,7 +24,6 @@ from service.api.forms import (
 )
 from service.api.schemas import ErrorOut, ObserveOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.atlas.loop_closures import record_if_inter_robot
 
 router = APIRouter(tags=["queries"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -68,12 +67,10 @@ def query(
         atlas_name=atlas,
         image_bytes=read_image_upload(image, service.settings.max_upload_bytes),
         k=k,
+        robot_id=robot_id or None,
         query_filter=query_filter,
         intrinsics=intrinsics_from_form(intrinsics),
         sequence_length=sequence_length,
-    )
-    record_if_inter_robot(
-        service.sessions, robot_id=robot_id or None, result=result, source="query"
     )
     return QueryOut.model_validate(asdict(result))
 
@@ -111,12 +108,5 @@ def observe(
         k=k,
         query_filter=query_filter,
         sequence_length=sequence_length,
-    )
-    record_if_inter_robot(
-        service.sessions,
-        robot_id=robot_id,
-        result=result,
-        source="observe",
-        query_frame_id=frame.id,
     )
     return ObserveOut.model_validate({**asdict(result), "frame_id": frame.id})

@@ -12,11 +12,8 @@ from fastapi.responses import FileResponse
 from starlette.background import BackgroundTask
 
 from service.api.auth import AdminAccess, UnscopedAdminAccess
-from service.api.deps import ServiceDep
+from service.api.deps import RuntimeDep, ServiceDep
 from service.api.schemas import AtlasOut, ErrorOut
-from service.atlas import reads
-from service.fleet.snapshot_restore import restore_atlas
-from service.fleet.snapshots import export_atlas
 
 router = APIRouter(tags=["snapshots"])
 ERRORS: dict[int | str, dict[str, Any]] = {
@@ -35,11 +32,11 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     summary="Export the atlas to one archive (download)",
     description="The same archive as `loopnet snapshot export`; restore it with POST /v1/snapshots.",
 )
-def export(atlas: str, service: ServiceDep, _: AdminAccess) -> FileResponse:
+def export(atlas: str, runtime: RuntimeDep, _: AdminAccess) -> FileResponse:
     folder = Path(tempfile.mkdtemp(prefix="loopnet-snapshot-"))
     path = folder / f"{atlas}.loopnet-snapshot.tar"
     try:
-        export_atlas(service.settings, service.sessions, atlas, path)
+        runtime.snapshots.export(atlas, path)
     except Exception:
         shutil.rmtree(folder, ignore_errors=True)
         raise
@@ -59,6 +56,7 @@ def export(atlas: str, service: ServiceDep, _: AdminAccess) -> FileResponse:
     summary="Restore an uploaded snapshot archive as a new atlas",
 )
 def restore(
+    runtime: RuntimeDep,
     service: ServiceDep,
     _: UnscopedAdminAccess,
     archive: Annotated[UploadFile, File(description="An archive from a snapshot export.")],
@@ -70,5 +68,5 @@ def restore(
         path = Path(tmp) / "snapshot.tar"
         with path.open("wb") as out:
             shutil.copyfileobj(archive.file, out)
-        restored = restore_atlas(service.settings, service.sessions, path, name=name)
-    return AtlasOut(**reads.atlas_summary(service.sessions, restored))
+        restored = runtime.snapshots.restore(path, name=name)
+    return AtlasOut(**service.reads.atlas_summary(restored))

@@ -7,10 +7,11 @@ to a vocabulary learned on the atlas's own stored descriptors).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, get_args
 
 import numpy as np
 
+from service.domain.statuses import AggregatorName
 from service.ml.aggregators.mean import MeanAggregator
 from service.ml.aggregators.vlad import VladAggregator, fit_vocabulary
 
@@ -28,7 +29,7 @@ class Aggregator(Protocol):
     def state(self) -> dict[str, np.ndarray]: ...
 
 
-AGGREGATORS = ("mean", "vlad")
+AGGREGATORS: tuple[AggregatorName, ...] = get_args(AggregatorName)
 
 
 def fit_aggregator(
@@ -57,6 +58,7 @@ def aggregator_from_state(name: str, state: dict[str, np.ndarray]) -> Aggregator
 
 __all__ = [
     "AGGREGATORS",
+    "AggregatorName",
     "Aggregator",
     "MeanAggregator",
     "VladAggregator",

@@ -9,8 +9,8 @@ Poolings:
   stride 16, averaged over a 4 x 4 grid of cells), each half L2-normalised and the whole
   scaled to unit norm. Mid-level maps with their spatial arrangement survive appearance
   change (season, weather) far better than the last map's semantics (Sünderhauf et al., "On
-  the performance of ConvNet features for place recognition", IROS 2015): on nordland_64x32
-  the layout alone found 0.36 of winter queries against 0.03 for GeM (benchmarks/RESULTS.md).
+  the performance of ConvNet features for place recognition", IROS 2015); measured on
+  nordland_64x32 in benchmarks/RESULTS.md ("Figures behind choices in the code").
   The atlas's calibration then whitens the whole vector and keeps the directions the atlas
   varies in.
 """

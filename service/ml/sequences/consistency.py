@@ -11,19 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 
+from service.domain.statuses import PlaceStatus as PlaceStatus
 from service.ml.sequences.trajectories import Trajectories
-
-
-class PlaceStatus(StrEnum):
-    """What one observation concluded."""
-
-    LOOP = "loop"  # passed, and consistent with the previous required - 1 observations
-    CANDIDATE = "candidate"  # passed, not yet consistent
-    NEW_PLACE = "new_place"  # nothing passed
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,12 @@ from service.atlas.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
 from service.fleet.atlas_repair import clean_unfinished_restores
-from service.jobs.queue import Queue
+from service.fleet.keys import Authenticator, KeyAdmin
+from service.fleet.snapshot_use_case import Snapshots
+from service.jobs.operations import Jobs
 from service.ml import weights
 from service.ml.pipeline import FeaturePipeline
+from service.runtime.queue import Queue
 from service.storage.db import (
     make_engine,
     make_private_dir,
@@ -44,6 +47,7 @@ class Runtime:
         self._thread: threading.Thread | None = None
         self._queue: Queue | None = None
         self._follower: ChangeFollower | None = None
+        self._authenticator: Authenticator | None = None
 
     def start(self, *, background: bool = True) -> None:
         """Migrate the database, then load the CNNs and every atlas's index."""
@@ -89,6 +93,33 @@ class Runtime:
     def wait_ready(self, timeout: float | None = None) -> None:
         if self._thread is not None:
             self._thread.join(timeout)
+
+    @property
+    def key_admin(self) -> KeyAdmin:
+        """Key administration (creating, listing, revoking) on this process's database."""
+        return KeyAdmin(self._sessions())
+
+    @property
+    def authenticator(self) -> Authenticator:
+        """Checks the keys requests show (built once the database is open)."""
+        if self._authenticator is None:
+            self._authenticator = Authenticator(self.settings, self._sessions())
+        return self._authenticator
+
+    @property
+    def jobs(self) -> Jobs:
+        """Submitting, reading and cancelling jobs (queue opened on first use)."""
+        return Jobs(self._sessions(), lambda job_id: self.queue.enqueue(job_id))
+
+    @property
+    def snapshots(self) -> Snapshots:
+        """Export and restore of whole atlases (archives)."""
+        return Snapshots(self.settings, self._sessions())
+
+    def _sessions(self) -> sessionmaker[Session]:
+        if self.sessions is None:
+            raise NotReady("the service is starting")
+        return self.sessions
 
     @property
     def queue(self) -> Queue:

@@ -2,7 +2,7 @@
 
 The API process enqueues with it; ``loopnet worker`` consumes with it. Both build it from the
 same settings, so they agree on the storage (a SQLite file in the data directory, or Redis).
-Messages are JSON carrying one job id (:mod:`service.jobs.messages`), never pickles.
+Messages are JSON carrying one job id (:mod:`service.runtime.messages`), never pickles.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 from huey import Huey, RedisHuey, SqliteHuey
 
 from service.config import Settings
-from service.jobs.messages import JobIdSerializer, RejectedMessage
+from service.runtime.messages import JobIdSerializer, RejectedMessage
 from service.storage.db import create_private_file, make_private_dir
 
 log = logging.getLogger(__name__)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import logging
 
 from service.config import Settings
-from service.jobs.queue import Queue
-from service.jobs.recovery import start_sweeper
+from service.runtime.queue import Queue
+from service.runtime.recovery import start_sweeper
 from service.storage.db import make_engine, make_session_factory, upgrade_database
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ from datetime import timedelta
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.config import Settings
-from service.jobs.queue import Queue
+from service.runtime.queue import Queue
 from service.storage import jobs
 from service.storage.db import transaction
 from service.storage.models import JobStatus, utcnow

@@ -21,7 +21,7 @@ from typing import Any
 from huey.registry import Message
 from huey.serializer import Serializer
 
-from service.storage.models import MAX_ROW_ID as MAX_JOB_ID
+from service.domain.limits import MAX_ROW_ID as MAX_JOB_ID
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
@@ -14,12 +14,14 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.atlas.change_feed import revisions
 from service.atlas.loop_closures import list_loop_closures
 from service.atlas.model_versions import VersionConfig
-from service.atlas.state import LoadedAtlas
 from service.domain.statuses import CalibrationState
 from service.errors import Conflict
 from service.ml.presets import FeatureSignature
 from service.storage import repository as repo
 from service.storage.models import Atlas, Frame, LoopClosure, ModelVersion, Submap
+
+if TYPE_CHECKING:
+    from service.atlas.state import LoadedAtlas
 
 Sessions = sessionmaker[Session]
 

@@ -12,14 +12,17 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 from sqlalchemy.orm import Session
 
-from service.atlas.state import LoadedAtlas
 from service.atlas.trajectory_growth import GrowingTrajectories
 from service.ml.sequences import MapMoments, Trajectories
 from service.storage import repository as repo
+
+if TYPE_CHECKING:
+    from service.atlas.state import LoadedAtlas
 
 
 class SequenceMap:

@@ -1,5 +1,5 @@
-"""The SQL side of the pgvector store: table names, the extension, filters and the text form
-of vectors (see :mod:`service.index.pgvector_store`)."""
+"""The SQL side of the pgvector store and its tuning: table names, the extension, filters, the text form
+of vectors, and :class:`PgVectorPolicy` (see :mod:`service.index.pgvector_store`)."""
 
 from __future__ import annotations
 
@@ -95,3 +95,28 @@ def literal(vector: np.ndarray) -> str:
 
 def parse(literal: str) -> np.ndarray:
     return np.array(literal.strip("[]").split(","), dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class PgVectorPolicy:
+    """Tuning of the pgvector store.
+
+    Attributes:
+        exact_below: atlases with fewer frames (and searches over fewer listed frames) are
+            searched exactly.
+        ef_search: HNSW candidate list per unfiltered query (recall against latency; see
+            benchmarks/RESULTS.md, *Issue 28: vector stores*).
+        filtered_ef_search: the same for a filtered query (robot, frames, time): its nearest
+            allowed frames are further from the query in the graph, so it needs more.
+        max_scan_tuples: how far an iterative scan may go before giving up (then exact).
+        m, ef_construction: HNSW build parameters.
+        size_ttl: seconds the frame count is cached (it only picks exact or HNSW search).
+    """
+
+    exact_below: int = 10_000
+    ef_search: int = 100
+    filtered_ef_search: int = 400
+    max_scan_tuples: int = 50_000
+    m: int = 16
+    ef_construction: int = 64
+    size_ttl: float = 5.0

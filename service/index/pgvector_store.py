@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,8 +32,10 @@ from sqlalchemy import text
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.index.atlas_index import Hit
+from service.index.journal import Change, ChangeJournal
 from service.index.pg_copy import copy_rows, insert_rows
 from service.index.pgvector_sql import (
+    PgVectorPolicy,
     VectorFilter,
     available,
     drop_atlas_tables,
@@ -55,34 +56,8 @@ __all__ = [
     "table_name",
 ]
 
-JOURNAL_KEPT = 1024
 ESTIMATED_ABOVE = 100_000  # tables larger than this are sized by the planner's estimate
 HALFVEC_ABOVE = 2000  # HNSW indexes vector(d) up to 2,000 dimensions, halfvec(d) up to 4,000
-
-
-@dataclass(frozen=True)
-class PgVectorPolicy:
-    """Tuning of the pgvector store.
-
-    Attributes:
-        exact_below: atlases with fewer frames (and searches over fewer listed frames) are
-            searched exactly.
-        ef_search: HNSW candidate list per unfiltered query (recall against latency; see
-            benchmarks/RESULTS.md, *Issue 28: vector stores*).
-        filtered_ef_search: the same for a filtered query (robot, frames, time): its nearest
-            allowed frames are further from the query in the graph, so it needs more.
-        max_scan_tuples: how far an iterative scan may go before giving up (then exact).
-        m, ef_construction: HNSW build parameters.
-        size_ttl: seconds the frame count is cached (it only picks exact or HNSW search).
-    """
-
-    exact_below: int = 10_000
-    ef_search: int = 100
-    filtered_ef_search: int = 400
-    max_scan_tuples: int = 50_000
-    m: int = 16
-    ef_construction: int = 64
-    size_ttl: float = 5.0
 
 
 class PgVectorStore:
@@ -109,8 +84,7 @@ class PgVectorStore:
         self._size: tuple[float, int] | None = None  # (when counted, count)
         # this process's adds and removals, numbered, as AtlasIndex journals them (caches of
         # the held vectors follow them); other replicas' writes are not in it
-        self._journal: list[tuple[int, np.ndarray, np.ndarray | None]] = []
-        self._journal_start = 0
+        self._journal = ChangeJournal()  # this process's adds and removals, as the FAISS index's
 
     # ----- schema --------------------------------------------------------------------------
 
@@ -229,26 +203,17 @@ class PgVectorStore:
     def _counted(self, change: int, sign: int, ids: np.ndarray, vectors: np.ndarray | None) -> None:
         if self._size is not None:
             self._size = (self._size[0], self._size[1] + change)
-        stored = None if vectors is None else self.stored_like(ids, vectors)
-        self._journal.append((sign, ids.copy(), stored))
-        if len(self._journal) > JOURNAL_KEPT:
-            drop = len(self._journal) - JOURNAL_KEPT // 2
-            self._journal = self._journal[drop:]
-            self._journal_start += drop
+        self._journal.note(sign, ids, None if vectors is None else self.stored_like(ids, vectors))
 
     @property
     def generation(self) -> int:
         """How many adds and removals this process made through this object."""
-        return self._journal_start + len(self._journal)
+        return self._journal.generation
 
-    def changes_since(
-        self, generation: int
-    ) -> list[tuple[int, np.ndarray, np.ndarray | None]] | None:
+    def changes_since(self, generation: int) -> list[Change] | None:
         """This process's adds (+1, ids, vectors) and removals (-1, ids, None) after
         ``generation``; None when the journal no longer reaches back that far."""
-        if generation < self._journal_start or generation > self.generation:
-            return None
-        return list(self._journal[generation - self._journal_start :])
+        return self._journal.since(generation)
 
     def stored_like(self, ids: np.ndarray, added: np.ndarray) -> np.ndarray:
         """What :meth:`vectors` returns for ``ids`` just added as ``added`` (float16-rounded

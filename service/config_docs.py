@@ -40,6 +40,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "Decision and verification": (
         "loop_closure_threshold",
         "loop_score_min",
+        "loop_probability_min",
         "matcher",
         "verify_top",
         "verify_min_inliers",

@@ -42,9 +42,7 @@ def answer_evidence(
     if not candidates:
         return None
     best = candidates[0]
-    rivals = [
-        c.inliers for c in candidates[1:] if c.submap != best.submap and c.inliers is not None
-    ]
+    rivals = [c.inliers for c in candidates[1:] if c.inliers is not None and is_rival(best, c)]
     score_excess = best.score - math.log10(max(frames, 1)) if best.score is not None else None
     return Evidence(
         inliers=best.inliers,

@@ -40,19 +40,19 @@ INTERCEPT = 0.0
 COEFFICIENTS = {
     "inliers": 3.0,  # per e-fold of (1 + inliers)
     "inlier_ratio": 2.0,
-    "rival": 2.5,  # per e-fold of (1 + inliers) / (1 + rival's inliers)
+    "rival": 4.0,  # per e-fold of (1 + inliers) / (1 + rival's inliers)
     "score": 1.0,  # per decade of rarity among impostors
     "sequence": 1.0,  # per standard deviation of sequence margin
 }
 # Where each part is neutral (the logit's zero along that axis).
 CENTRES = {
-    "inliers": math.log1p(40.0),
+    "inliers": math.log1p(20.0),
     "inlier_ratio": 0.5,
     "rival": math.log(2.0),
     "score": 2.0,
     "sequence": 2.0,
 }
-CLIP = {"score": (-4.0, 8.0), "sequence": (-4.0, 8.0)}
+CLIP = {"rival": (-2.0, 1.5), "score": (-4.0, 8.0), "sequence": (-4.0, 8.0)}
 
 
 @dataclass(frozen=True)
@@ -83,8 +83,9 @@ class Evidence:
             values["inliers"] = math.log1p(max(self.inliers, 0))
             values["inlier_ratio"] = float(self.inlier_ratio or 0.0)
             if self.rival_inliers is not None:
-                values["rival"] = math.log1p(max(self.inliers, 0)) - math.log1p(
-                    max(self.rival_inliers, 0)
+                values["rival"] = _clip(
+                    "rival",
+                    math.log1p(max(self.inliers, 0)) - math.log1p(max(self.rival_inliers, 0)),
                 )
         if self.score_excess is not None:
             values["score"] = _clip("score", self.score_excess)

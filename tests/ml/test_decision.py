@@ -66,3 +66,21 @@ def test_small_atlases_verify_every_candidate() -> None:
     assert verified_count(5, 10) == 10
     assert verified_count(5, SMALL_ATLAS_FRAMES + 1) == 5
     assert verified_count(0, 10) == 0
+
+
+def test_rivals_are_frames_of_another_place() -> None:
+    """Same robot: more than 2 frames away along its trajectory; another robot: another
+    submap. The best verified rival's inliers enter the evidence."""
+    from service.atlas.decision import answer_evidence
+    from service.atlas.results import Candidate
+
+    def candidate(frame_id: int, inliers: int, robot: str = "r", submap: str = "s") -> Candidate:
+        return Candidate(frame_id, submap, robot, 0.9, inliers, None, 0.8, inliers >= 44)
+
+    best = candidate(10, 80)
+    near, far = candidate(12, 70), candidate(20, 30)
+    other_robot_same_submap = candidate(40, 75, robot="q")
+    evidence = answer_evidence([best, near, far, other_robot_same_submap], 100, None)
+    assert evidence is not None and evidence.rival_inliers == 30
+    evidence = answer_evidence([best, candidate(41, 60, robot="q", submap="t")], 100, None)
+    assert evidence is not None and evidence.rival_inliers == 60

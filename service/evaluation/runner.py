@@ -565,7 +565,7 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
         )
         served = _served_rows(extractor, result, dataset, submap_of)
-        for method in served + calibrated + uncalibrated:
+        for method in calibrated + uncalibrated + served:
             (global_only if method.name.startswith("global-only") else methods).append(method)
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()

@@ -104,7 +104,7 @@ def served_answers(
             else:
                 answer = service.query_features(atlas_name=atlas, features=features, k=k)
             query_ms.append((time.perf_counter() - start) * 1000.0)
-            found = [frame_to_reference.get(c.frame_id, -1) for c in answer.candidates]
+            found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
             p = _probability(answer)
             indices.append(found + [-1] * pad)
@@ -122,6 +122,18 @@ def served_answers(
         {"matcher": config.matcher, "top": config.top, "min_inliers": config.min_inliers},
         sequence_length,
     )
+
+
+def answered_frames(answer: QueryResult) -> list[int]:
+    """The frames an answer names, the one to act on first: the loop's frame, else the
+    robot's sequence's aligned frame, else the match; then the other candidates."""
+    ids = [c.frame_id for c in answer.candidates]
+    first = answer.loop_frame_id
+    if first is None and answer.sequence is not None:
+        first = answer.sequence.frame_id
+    if first is None:
+        return ids
+    return [first, *(f for f in ids if f != first)]
 
 
 def _probability(answer: QueryResult) -> float:

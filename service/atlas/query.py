@@ -243,7 +243,8 @@ class AtlasQueries(Observations):
             if found.evidence is not None
             else single_frame_verdict(match.frame_id if match else None, loop_closure)
         )
-        verdict = probable_candidate(verdict, decision)
+        if enabled:  # without geometry the probability is too thin to hold a place open
+            verdict = probable_candidate(verdict, decision)
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,

@@ -141,6 +141,9 @@ def decide_loop(
 
     With verification on, an unverified best candidate (fewer inliers than ``min_inliers``)
     never passes, whatever the probability: geometry is the one part a look-alike cannot fake.
+    On a calibrated atlas a match whose score is below ``log10(frames)`` (no rarer than the
+    best of the atlas's impostors) never passes either: on Nordland at 64x32 px, where RANSAC
+    fits 70 inliers between look-alike frames, it was the only part that told them apart.
     """
     if evidence is None:
         return Decision(None, threshold, False, reason="the atlas has no frame to match")
@@ -164,12 +167,21 @@ def decide_loop(
         and evidence.inliers is not None
         and (min_inliers is None or evidence.inliers >= min_inliers)
     )
-    passed = geometry_ok and p >= threshold
+    # on a calibrated atlas the match must be at least as rare as the best of its N impostors
+    rare = evidence.score_excess is None or evidence.score_excess >= 0.0
+    if not rare:
+        reasons.append(
+            f"the match's score is below log10({evidence.frames}): the best of the atlas's "
+            "impostors is as similar"
+        )
+    passed = geometry_ok and rare and p >= threshold
     failed = None
     if not passed:
         negative = {name: t for name, t in terms.items() if t < 0}
         if not geometry_ok:
             failed = "inliers"
+        elif not rare:
+            failed = "score"
         elif negative:
             failed = min(negative, key=lambda name: negative[name])
         if p < threshold:

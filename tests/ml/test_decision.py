@@ -84,3 +84,14 @@ def test_rivals_are_frames_of_another_place() -> None:
     assert evidence is not None and evidence.rival_inliers == 30
     evidence = answer_evidence([best, candidate(41, 60, robot="q", submap="t")], 100, None)
     assert evidence is not None and evidence.rival_inliers == 60
+
+
+def test_a_match_no_rarer_than_the_best_impostor_is_never_a_loop() -> None:
+    """Geometry alone cannot close a loop on a calibrated atlas: 71 clean inliers between
+    two look-alike frames, but a score below log10(frames)."""
+    evidence = Evidence(
+        inliers=71, inlier_ratio=1.0, rival_inliers=20, score_excess=-0.9, frames=400
+    )
+    decision = decide_loop(evidence, min_inliers=44)
+    assert not decision.passed and decision.failed == "score"
+    assert decision.reason is not None and "log10(400)" in decision.reason

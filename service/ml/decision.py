@@ -42,7 +42,7 @@ COEFFICIENTS = {
     "inlier_ratio": 2.0,
     "rival": 4.0,  # per e-fold of (1 + inliers) / (1 + rival's inliers)
     "score": 1.0,  # per decade of rarity among impostors
-    "sequence": 1.0,  # per standard deviation of sequence margin
+    "sequence": 10.0,  # per standard deviation of sequence margin (chosen on the first half)
 }
 # Where each part is neutral (the logit's zero along that axis).
 CENTRES = {

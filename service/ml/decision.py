@@ -14,10 +14,11 @@ service already computes for the best candidate (after verification has re-ranke
 - ``sequence``: the robot's sequence margin over its best rival place, when a robot streams.
 
 Each part enters centred, so a part the answer does not have (no calibration yet, no robot)
-adds nothing and the others decide. The coefficients were chosen on the first half of the
-development queries of gardenspoint_cohog200 (DISK at 256 px, MNN) and nordland_64x32
-(XFeat), and the figures reported on the other half (``benchmarks/served_halves.py``; the
-numbers are in benchmarks/RESULTS.md, issue 25).
+adds nothing and the others decide. The geometric and score coefficients are set by hand and
+checked on halves of gardenspoint_cohog200 (DISK at 256 px, MNN; a logistic refit on the
+first half did worse on the second); the sequence weight was chosen on the first half of a
+nordland_64x32 slice (XFeat) and reported on the second (``benchmarks/served_halves.py``;
+the numbers are in benchmarks/RESULTS.md, issue 25).
 
 Agreement of consecutive answers (the robot's consistency) is applied after the probability,
 by the status: a probable loop that its previous observations do not support yet is a

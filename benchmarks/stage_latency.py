@@ -94,6 +94,67 @@ def verification_latency(image: Path, local: LocalFeatures, repeats: int) -> Non
         )
 
 
+def cpu_timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    """CPU milliseconds of this process (every thread) per call."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.process_time()
+        fn()
+        samples.append((time.process_time() - start) * 1000.0)
+    return samples
+
+
+def decision_cost(image: Path, repeats: int) -> None:
+    """CPU cost of the loop decision (issue 25) against a default-preset query in one run: the
+    query's stages (decode, DISK 512 px / 1024 kp, MobileNetV2 224, verification of 5
+    candidates by MNN + RANSAC) beside today's decision (``verification.decide``) and the new
+    one (``answer_evidence`` + ``decide_loop`` + ``probable_candidate``), p50 CPU ms."""
+    from service.atlas.decision import answer_evidence, probable_candidate
+    from service.atlas.results import Candidate
+    from service.atlas.sequences import single_frame_verdict
+    from service.ml.decision import decide_loop
+    from service.ml.verification import decide
+
+    data = image.read_bytes()
+    night = (image.parent.parent / "ref" / image.name).read_bytes()
+    disk = build_local_extractor(LocalExtractorConfig(long_side=512, max_keypoints=1024))
+    backbone = build_backbone(BackboneConfig(name="mobilenetv2", input_size=224))
+    verifier = Verifier(VerificationConfig(matcher="mnn"))
+    night_rgb = decode_image(night)
+    stored = View(disk.extract(night_rgb), (night_rgb.shape[1], night_rgb.shape[0]))
+
+    def query() -> None:
+        rgb = decode_image(data)
+        local = disk.extract(rgb)
+        backbone.describe(rgb)
+        verifier.verify_many(View(local, (rgb.shape[1], rgb.shape[0])), [stored] * 5)
+
+    found = verifier.verify(View(disk.extract(decode_image(data)), stored.image_size), stored)
+    candidates = [
+        Candidate(i, f"s{i // 5}", "r", 0.9 - i * 0.001, found.inliers - i, 0.5, 0.6, True)
+        for i in range(32)
+    ]
+
+    def old() -> None:
+        verdict = decide(0.9, found, threshold=0.9, verify=True)
+        single_frame_verdict(1, verdict)
+
+    def new() -> None:
+        decision = decide_loop(answer_evidence(candidates, 1000, None), min_inliers=44)
+        probable_candidate(single_frame_verdict(1, decision.passed), decision)
+
+    q = statistics.median(cpu_timed(query, repeats))
+    o = statistics.median(cpu_timed(old, repeats * 200))
+    n = statistics.median(cpu_timed(new, repeats * 200))
+    print("| part | p50 CPU ms |\n| --- | --- |")
+    print(f"| default-preset query (decode, DISK 512, MobileNetV2, verify 5) | {q:.2f} |")
+    print(f"| decision today (threshold + verified) | {o:.4f} |")
+    print(f"| decision issue 25 (evidence + loop_probability + status) | {n:.4f} |")
+    print(f"| added by the decision | {n - o:.4f} ({100 * (n - o) / q:.3f} % of the query) |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -112,7 +173,13 @@ def main() -> None:
     parser.add_argument(
         "--index-size", type=int, default=10_000, help="synthetic frames in the index"
     )
+    parser.add_argument(
+        "--decision-only", action="store_true", help="only the loop decision's cost (issue 25)"
+    )
     args = parser.parse_args()
+    if args.decision_only:
+        decision_cost(args.image, args.repeats)
+        return
 
     data = args.image.read_bytes()
     rgb = decode_image(data)

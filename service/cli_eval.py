@@ -122,6 +122,13 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         help="sequence rows: newest query frames whose best matches propose candidates "
         "(0: all, the service's default; 1: the newest only)",
     )
+    ev.add_argument(
+        "--no-served",
+        dest="served",
+        action="store_false",
+        help="skip the <method>-served rows (queries answered with verification and the loop "
+        "decision at the service's defaults)",
+    )
     ev.set_defaults(func=cmd_eval)
     add_online_parser(commands)
 
@@ -242,6 +249,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         sequence=_csv_list(int, args.sequence),
         sequence_contrast=args.sequence_contrast,
         sequence_seed_frames=args.sequence_seed_frames,
+        served=args.served,
         precision=args.precision,
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )

@@ -123,6 +123,16 @@ class DecisionSettings(BaseSettings):
         "true revisit finds a match this good among the atlas's frames (a match is a loop from "
         "score >= this + log10(frames), and only once verification agrees).",
     )
+    loop_probability_min: float = Field(
+        0.98,
+        gt=0.0,
+        le=1.0,
+        description="With verification on: the loop_probability (service.ml.decision: inliers, "
+        "inlier ratio, margin over the best verified rival place, calibrated score, sequence "
+        "margin) from which the best match is a loop closure. 0.98 gave no false loop on the "
+        "development sets (benchmarks/RESULTS.md, issue 25); lower it for recall, raise it for "
+        "safety.",
+    )
     matcher: str = Field(
         "mnn",
         description="Local-feature matcher of geometric verification: 'mnn' (mutual nearest "

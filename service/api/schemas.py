@@ -188,14 +188,48 @@ class SequenceOut(BaseModel):
     )
 
 
+class DecisionOut(BaseModel):
+    loop_probability: float | None = Field(
+        description="Probability that the match is the same place, from the parts in "
+        "`contributions` (a logistic model chosen on the development sets): the one number "
+        "the loop decision thresholds. Null only when the atlas has no frame to match "
+        "(`reason` says so)."
+    )
+    threshold: float = Field(
+        description="The probability a loop needs (LOOPNET_LOOP_PROBABILITY_MIN)."
+    )
+    passed: bool = Field(
+        description="loop_probability reaches the threshold and the match is verified."
+    )
+    parts: dict[str, float] = Field(
+        description="The value of each part the answer has: inliers (log(1 + inliers) of the "
+        "match), inlier_ratio, rival, score, sequence (see contributions)."
+    )
+    contributions: dict[str, float] = Field(
+        description="Each part's term in the model's logit (positive: for a loop): inliers, "
+        "inlier_ratio, rival (inliers over the best verified candidate of another place), "
+        "score (calibrated score minus log10 of the atlas's frames), sequence (the robot's "
+        "sequence margin). A part the answer lacks is absent and adds nothing."
+    )
+    failed: str | None = Field(
+        None, description="The part that held the decision back most; null when it passed."
+    )
+    reason: str | None = Field(
+        None,
+        description="Why the answer is not a loop or cannot decide fully (too few frames to "
+        "calibrate, no verified candidate, ...); null when the evidence is complete and passed.",
+    )
+
+
 class QueryOut(BaseModel):
     atlas: str
     model_version: int
     match: CandidateOut | None = Field(description="The best match, or null on an empty atlas.")
     candidates: list[CandidateOut] = Field(description="The top-k frames, best first.")
     loop_closure: bool = Field(
-        description="The best similarity reaches the threshold and, with verification on, the "
-        "best candidate (after re-ranking by inliers) is verified."
+        description="With verification on: the best candidate (after re-ranking by inliers) "
+        "is verified and decision.loop_probability reaches its threshold. With verification "
+        "off: the best similarity (or calibrated score) reaches its threshold."
     )
     threshold: float
     predicted_submap: SubmapPredictionOut
@@ -221,10 +255,11 @@ class QueryOut(BaseModel):
     status: PlaceStatusValue = Field(
         description="'loop': loop_closure holds and the robot's last consistency_frames "
         "observations agree on one place, or the robot's sequence passed on its own "
-        "(sequence.passed); 'candidate': loop_closure holds, not yet consistent; 'new_place': "
-        "nothing passes. Without a robot: 'loop' or 'new_place'."
+        "(sequence.passed); 'candidate': loop_closure holds, not yet consistent, or the match is "
+        "more likely the same place than not (decision.loop_probability >= 0.5) without "
+        "reaching the loop threshold; 'new_place': nothing is likely."
     )
-    new_place: bool = Field(description="Nothing in the atlas passes: the robot is somewhere new.")
+    new_place: bool = Field(description="Nothing in the atlas is likely the same place.")
     consistent: int = Field(
         description="Consecutive agreeing observations of the robot, this one included."
     )
@@ -238,6 +273,11 @@ class QueryOut(BaseModel):
         None,
         description="Sequence matching over the robot's recent frames; null without a robot "
         "or with sequence_length 0.",
+    )
+    decision: DecisionOut | None = Field(
+        None,
+        description="The loop decision explained: loop_probability, the parts behind it, the "
+        "one that failed and why.",
     )
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.atlas.decision import answer_evidence, probable_candidate, verified_count
 from service.atlas.filters import QueryFilter, resolve
 from service.atlas.ingest import FrameIngest
 from service.atlas.observe import Observations, with_extraction_timings
@@ -35,6 +36,7 @@ from service.atlas.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
 from service.metrics import observe_stages
+from service.ml.decision import decide_loop
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.geometry import Intrinsics
 from service.ml.impostors import loop_score_threshold
@@ -177,7 +179,7 @@ class AtlasQueries(Observations):
         verifications: dict[int, Verification] = {}
         if self.verification.enabled and candidates:
             start = time.perf_counter()
-            checked = candidates[: config.top]
+            checked = candidates[: verified_count(config.top, state.index.size)]
             verifications = {
                 frame_id: replace(v, verified=v.inliers >= min_inliers)
                 for frame_id, v in self.verification.verify(
@@ -216,20 +218,32 @@ class AtlasQueries(Observations):
             if scores is not None
             else None
         )
-        evidence = None
-        if match is not None:
-            evidence = match.similarity if score_threshold is None else match.score
-        loop_closure = decide(
-            evidence,
-            verifications.get(match.frame_id) if match else None,
-            threshold=threshold if score_threshold is None else score_threshold,
+        sequence = found.evidence.sequence if found.evidence is not None else None
+        decision = decide_loop(
+            answer_evidence(candidates, state.index.size, sequence),
+            threshold=self.settings.loop_probability_min,
             verify=enabled,
+            min_inliers=min_inliers if enabled else None,
         )
+        if enabled:
+            loop_closure = decision.passed
+        else:  # no geometry: the similarity (or score) threshold alone, as before
+            evidence = None
+            if match is not None:
+                evidence = match.similarity if score_threshold is None else match.score
+            loop_closure = decide(
+                evidence,
+                None,
+                threshold=threshold if score_threshold is None else score_threshold,
+                verify=False,
+            )
         verdict = (
             found.evidence.verdict(match.frame_id if match else None, loop_closure)
             if found.evidence is not None
             else single_frame_verdict(match.frame_id if match else None, loop_closure)
         )
+        if enabled:  # without geometry the probability is too thin to hold a place open
+            verdict = probable_candidate(verdict, decision)
         return QueryResult(
             atlas=atlas_name,
             model_version=state.model_version,
@@ -252,8 +266,9 @@ class AtlasQueries(Observations):
             new_place=verdict.status == PlaceStatus.NEW_PLACE,
             consistent=verdict.consistent,
             loop_frame_id=verdict.loop_frame_id,
-            sequence=found.evidence.sequence if found.evidence is not None else None,
+            sequence=sequence,
             proposals=found.proposals,
+            decision=decision,
         )
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
@@ -302,6 +317,7 @@ class AtlasQueries(Observations):
         ]
         stored: dict[int, LocalFeatures] = {}
         if self.verification.enabled and candidates:
-            stored = load_local_features(session, [c.frame_id for c in candidates[:top]])
+            checked = candidates[: verified_count(top, state.index.size)]
+            stored = load_local_features(session, [c.frame_id for c in checked])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
         return Found(candidates, frames, names, stored, evidence, proposals)

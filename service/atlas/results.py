@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from service.ml.decision import Decision
 from service.ml.verification import RelativePose
 
 
@@ -84,6 +85,7 @@ class QueryResult:
     # the search's frames, best first, filter applied: what an observation keeps as the places
     # its frame proposes to later sequences (not part of the answer)
     proposals: list[int] = field(default_factory=list, repr=False)
+    decision: Decision | None = None  # the loop probability, its parts and why it failed
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

@@ -57,6 +57,7 @@ from service.evaluation.retraining_pass import (
     retraining_rows,
 )
 from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
+from service.evaluation.served_pass import served_method
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.evaluation.verification_pass import (
     KeypointCache,
@@ -112,6 +113,8 @@ class EvalConfig:
             every frame's, the service's default; 1: the newest frame's own search hits).
         precision: the CNNs' arithmetic (``service.ml.precision``); features cached in one
             precision are reused in another, so give each its own ``cache_dir``.
+        served: add a ``loopnet-<extractor>-served`` row per extractor: the queries answered
+            as the service serves them (``served_pass``).
     """
 
     dataset: Path
@@ -147,6 +150,7 @@ class EvalConfig:
     sequence_contrast: int = 0
     sequence_seed_frames: int = 0
     precision: str = "fp32"
+    served: bool = True
 
 
 @dataclass
@@ -233,6 +237,37 @@ def _loopnet_methods(
             )
         )
     return methods
+
+
+def _served_rows(
+    extractor: str, result: PassResult, dataset: Dataset, submap_of: Sequence[int]
+) -> list[MethodResult]:
+    """The extractor's rows as served: anonymous queries, and one robot's observations with
+    sequences when the pass ran them."""
+    label = f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"
+    rows = []
+    if result.served is not None:
+        rows.append(
+            served_method(
+                f"loopnet-{extractor}-served",
+                f"{label} (as served)",
+                result.served,
+                dataset,
+                submap_of,
+            )
+        )
+    if result.served_sequence is not None:
+        length = result.served_sequence.sequence_length
+        rows.append(
+            served_method(
+                f"loopnet-{extractor}-served+seq{length}",
+                f"{label} (as served, observe, L={length})",
+                result.served_sequence,
+                dataset,
+                submap_of,
+            )
+        )
+    return rows
 
 
 def _baseline_method(
@@ -533,6 +568,8 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
             }
             if calibrates
             else None,
+            serve=config.served,
+            serve_sequence=max(config.sequence, default=0),
         )
         try:
             calibrated = (
@@ -558,7 +595,8 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         uncalibrated = _loopnet_methods(
             config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
         )
-        for method in calibrated + uncalibrated:
+        served = _served_rows(extractor, result, dataset, submap_of)
+        for method in calibrated + uncalibrated + served:
             (global_only if method.name.startswith("global-only") else methods).append(method)
         stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()

@@ -26,6 +26,7 @@ from service.atlas.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
+from service.evaluation.served_pass import ServedAnswers, served_answers
 from service.jobs.retraining import JobRunner
 from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
@@ -73,6 +74,8 @@ class PassResult:
     stored_references: CalibrationInputs | None = None
     query_local: list[LocalFeatures] = field(default_factory=list)
     calibrated: CalibratedAnswers | None = None
+    served: ServedAnswers | None = None
+    served_sequence: ServedAnswers | None = None
 
 
 @dataclass
@@ -274,12 +277,17 @@ def run_service_pass(
     label: str,
     on_features: Callable[[Path, FrameFeatures], None] | None = None,
     calibration: dict[str, object] | None = None,
+    serve: bool = False,
+    serve_sequence: int = 0,
 ) -> PassResult:
     """Ingest the references into a temporary atlas, query every query image, keep the vectors.
 
     ``on_features`` sees every freshly extracted frame (the verification pass keeps its
     keypoints, which the vector cache does not hold). With ``calibration`` (a calibration job's
-    parameters), the atlas is then calibrated by the job and every query asked again.
+    parameters), the atlas is then calibrated by the job and every query asked again. With
+    ``serve``, every query is then asked once more as the service serves it (verification and
+    the loop decision at the defaults: :mod:`service.evaluation.served_pass`), and with
+    ``serve_sequence`` L once more as one robot's observations with sequences of length L.
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None else None
@@ -366,6 +374,26 @@ def run_service_pass(
             if calibration is not None and query_features
             else None
         )
+        served = (
+            served_answers(
+                service, query_features, frame_to_reference, k, ATLAS, pipeline.preset.local.name
+            )
+            if serve and query_features
+            else None
+        )
+        served_sequence = (  # last: the observations join the atlas
+            served_answers(
+                service,
+                query_features,
+                frame_to_reference,
+                k,
+                ATLAS,
+                pipeline.preset.local.name,
+                sequence_length=serve_sequence,
+            )
+            if serve and serve_sequence and query_features
+            else None
+        )
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
@@ -399,6 +427,8 @@ def run_service_pass(
         stored_references=stored_references,
         query_local=query_local,
         calibrated=calibrated,
+        served=served,
+        served_sequence=served_sequence,
     )
 
 

@@ -58,6 +58,27 @@ def test_one_run_writes_every_method_into_the_report(slice_run) -> None:  # type
 
 
 @pytest.mark.slow
+def test_the_served_rows_sweep_the_loop_probability(slice_run) -> None:  # type: ignore[no-untyped-def]
+    """One row per extractor answered as the service serves (verification, calibrated score,
+    the loop decision at the defaults): its PR sweep is over loop_probability, in [0, 1], and
+    its operating point at the default threshold is reported."""
+    config, _ = slice_run
+    report = json.loads((config.output / "report.json").read_text())
+    rows = {m["name"]: m for m in report["methods"]}
+    for extractor in ("disk", "xfeat"):
+        served = rows[f"loopnet-{extractor}-served"]
+        assert served["kind"] == "served"
+        thresholds = served["pr_curve"]["threshold"]
+        assert thresholds and all(0.0 <= t <= 1.0 for t in thresholds)
+        point = served["details"]["operating_point"]
+        assert point["threshold"] == 0.98
+        assert set(point) >= {"precision", "recall", "false_loops_per_1000"}
+        assert 0.0 <= point["recall"] <= served["recall@1"] + 1e-9
+        assert len(served["details"]["per_query_parts"]) == 22
+        assert served["details"]["verification"]["top"] == 5
+
+
+@pytest.mark.slow
 def test_service_path_and_ablation_path_agree_and_the_branches_are_real(slice_run) -> None:  # type: ignore[no-untyped-def]
     _, result = slice_run
     by_name = {m.name: m for m in result.methods}

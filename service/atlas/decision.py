@@ -1,0 +1,63 @@
+"""The service's side of the loop decision: which candidates are verified, the evidence an
+answer hands to :func:`service.ml.decision.decide_loop`, and the status it leads to."""
+
+from __future__ import annotations
+
+import math
+
+from service.atlas.results import Candidate, SequenceAnswer
+from service.atlas.sequences import Verdict
+from service.ml.decision import CANDIDATE_PROBABILITY, Decision, Evidence
+from service.ml.sequences import PlaceStatus
+
+# Up to this many frames an atlas is small: every frame the search returns is verified, since
+# its global ranking is the least reliable (no calibration yet) and verifying all costs little.
+SMALL_ATLAS_FRAMES = 32
+# Frames of one robot further apart than this are different places for the rival part.
+RIVAL_GAP = 2
+
+
+def verified_count(top: int, frames: int) -> int:
+    """Candidates to verify: the setting's ``top``, or all of a small atlas's (0: off)."""
+    if top <= 0:
+        return 0
+    return max(top, frames) if frames <= SMALL_ATLAS_FRAMES else top
+
+
+def is_rival(best: Candidate, other: Candidate) -> bool:
+    """Whether ``other`` is another place than ``best``: a frame of the same robot more than
+    ``RIVAL_GAP`` frames away along its trajectory (ids grow with insertion), or a frame of
+    another robot in another submap. Another robot's frame in the same submap may well show
+    the same place, so it never counts against the match."""
+    if other.robot_id == best.robot_id:
+        return abs(other.frame_id - best.frame_id) > RIVAL_GAP
+    return other.submap != best.submap
+
+
+def answer_evidence(
+    candidates: list[Candidate], frames: int, sequence: SequenceAnswer | None
+) -> Evidence | None:
+    """The decision's evidence for the best candidate (``candidates`` in their final order);
+    None without candidates."""
+    if not candidates:
+        return None
+    best = candidates[0]
+    rivals = [c.inliers for c in candidates[1:] if c.inliers is not None and is_rival(best, c)]
+    score_excess = best.score - math.log10(max(frames, 1)) if best.score is not None else None
+    return Evidence(
+        inliers=best.inliers,
+        inlier_ratio=best.inlier_ratio,
+        rival_inliers=max(rivals) if rivals else None,
+        score_excess=score_excess,
+        sequence_margin=sequence.margin if sequence is not None else None,
+        frames=frames,
+    )
+
+
+def probable_candidate(verdict: Verdict, decision: Decision) -> Verdict:
+    """A new-place verdict whose match is still more likely the same place than not is a
+    ``candidate``: not certain enough to close a loop, not evidence of a new place either."""
+    p = decision.loop_probability
+    if verdict.status == PlaceStatus.NEW_PLACE and p is not None and p >= CANDIDATE_PROBABILITY:
+        return Verdict(PlaceStatus.CANDIDATE, verdict.consistent)
+    return verdict

@@ -1,0 +1,211 @@
+"""The ``<method>-served`` row: every query answered as ``POST /query`` answers it at the
+service's defaults (verification with the default matcher and count, the calibrated score
+once the atlas is calibrated, the loop decision), and its PR sweep over the one number the
+service thresholds, ``decision.loop_probability``.
+
+The pass runs in the service pass's temporary atlas after its calibration (when the dataset
+is large enough to calibrate); verification reads the references' keypoints back from the
+atlas's feature store, as a served query does.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from service.atlas.catalog import AtlasService
+from service.atlas.ingest import FrameFields
+from service.atlas.results import QueryResult
+from service.atlas.verify import CandidateVerification, verification_config
+from service.config import Settings
+from service.evaluation.datasets import Dataset
+from service.evaluation.metrics import Ranking, correct_matrix
+from service.evaluation.protocol import MethodResult, evaluate_ranking
+from service.ml.features import FrameFeatures, LocalFeatures
+
+PARTS = ("inliers", "inlier_ratio", "rival", "score", "sequence")
+# the settings a served answer takes at their defaults (the harness's atlas turns them off)
+DEFAULTS = (
+    "verify_top",
+    "matcher",
+    "verify_min_inliers",
+    "verify_ratio",
+    "ransac_threshold_px",
+    "loop_probability_min",
+    "sequence_length",
+    "consistency_frames",
+)
+QUERY_ROBOT, QUERY_SUBMAP = "queries", "queries"
+
+
+@dataclass
+class ServedAnswers:
+    """Per query: the served ranking (scores: the loop probability in column 0), the status,
+    the decision's parts (NaN: absent) and the milliseconds of heads + search + verification
+    + decision."""
+
+    ranking: Ranking
+    status: list[str]
+    parts: np.ndarray  # Q x len(PARTS)
+    query_ms: np.ndarray
+    threshold: float
+    verification: dict[str, Any] = field(default_factory=dict)
+    sequence_length: int = 0
+
+
+def served_answers(
+    service: AtlasService,
+    queries: Sequence[FrameFeatures],
+    frame_to_reference: dict[int, int],
+    k: int,
+    atlas: str,
+    extractor: str,
+    sequence_length: int = 0,
+) -> ServedAnswers:
+    """Ask every query through the service with the default verification switched on.
+
+    ``sequence_length`` 0: anonymous queries (``POST /query``). Otherwise the queries are one
+    robot's observations (``POST /observe``, one second apart, asking about the other robots'
+    frames only, so the references): each is answered with its sequence of that length and
+    consistency, then joins the atlas; call it last, after every anonymous pass.
+    """
+    defaults = Settings(data_dir=service.settings.data_dir)
+    settings = service.settings.model_copy(
+        update={name: getattr(defaults, name) for name in DEFAULTS}
+    )
+    queries_api = service.queries
+    before = (queries_api.verification, queries_api.settings)
+    config = verification_config(settings, extractor)
+    queries_api.verification = CandidateVerification(config, service.inference)
+    queries_api.settings = settings
+    if sequence_length:
+        service.create_submap(atlas, QUERY_SUBMAP)
+    indices, scores, status, parts, query_ms = [], [], [], [], []
+    try:
+        for i, features in enumerate(queries):
+            features = replace(features, local=_stored(features.local))
+            start = time.perf_counter()
+            if sequence_length:
+                fields = FrameFields(QUERY_SUBMAP, QUERY_ROBOT, timestamp=float(i))
+                answer, _ = service.observe_features(
+                    atlas_name=atlas,
+                    fields=fields,
+                    features=features,
+                    k=k,
+                    query_filter=service.query_filter(
+                        robot_id=QUERY_ROBOT, robots="others", timestamp=float(i)
+                    ),
+                    sequence_length=sequence_length,
+                )
+            else:
+                answer = service.query_features(atlas_name=atlas, features=features, k=k)
+            query_ms.append((time.perf_counter() - start) * 1000.0)
+            found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
+            pad = k - len(found)
+            p = _probability(answer)
+            indices.append(found + [-1] * pad)
+            scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
+            status.append(answer.status)
+            parts.append(_parts(answer))
+    finally:
+        queries_api.verification, queries_api.settings = before
+    return ServedAnswers(
+        Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
+        status,
+        np.array(parts, np.float64).reshape(len(parts), len(PARTS)),
+        np.array(query_ms, np.float64),
+        settings.loop_probability_min,
+        {"matcher": config.matcher, "top": config.top, "min_inliers": config.min_inliers},
+        sequence_length,
+    )
+
+
+def answered_frames(answer: QueryResult) -> list[int]:
+    """The frames an answer names, the one to act on first: the loop's frame, else the
+    robot's sequence's aligned frame, else the match; then the other candidates."""
+    ids = [c.frame_id for c in answer.candidates]
+    first = answer.loop_frame_id
+    if first is None and answer.sequence is not None:
+        first = answer.sequence.frame_id
+    if first is None:
+        return ids
+    return [first, *(f for f in ids if f != first)]
+
+
+def _probability(answer: QueryResult) -> float:
+    decision = answer.decision
+    if decision is None or decision.loop_probability is None:
+        return 0.0
+    return float(decision.loop_probability)
+
+
+def _parts(answer: QueryResult) -> list[float]:
+    """The decision's inputs (uncentred), NaN where absent."""
+    decision = answer.decision
+    if decision is None:
+        return [np.nan] * len(PARTS)
+    return [decision.parts.get(name, np.nan) for name in PARTS]
+
+
+def _stored(local: LocalFeatures) -> LocalFeatures:
+    return LocalFeatures(
+        local.keypoints, local.descriptors.astype(np.float16).astype(np.float32), local.scores
+    )
+
+
+def served_method(
+    name: str,
+    label: str,
+    served: ServedAnswers,
+    dataset: Dataset,
+    submap_of: Sequence[int],
+) -> MethodResult:
+    """The served row: PR over loop_probability and the operating point at the defaults."""
+    method = evaluate_ranking(
+        name,
+        label,
+        "served",
+        served.ranking,
+        dataset,
+        submap_of,
+        query_ms=served.query_ms,
+    )
+    method.details = {
+        "operating_point": operating_point(served, dataset),
+        "verification": served.verification,
+        "parts": PARTS,
+        "per_query_parts": np.round(served.parts, 4).tolist(),
+        "per_query_status": served.status,
+        "per_query_right": correct_matrix(served.ranking, [q.positives for q in dataset.queries])[
+            :, 0
+        ]
+        .astype(int)
+        .tolist(),
+    }
+    return method
+
+
+def operating_point(served: ServedAnswers, dataset: Dataset) -> dict[str, float | int]:
+    """What the service answers at its defaults: a query is a loop when its status is
+    ``loop``; precision, recall and false loops per 1,000 queries."""
+    positives = [q.positives for q in dataset.queries]
+    answerable = sum(1 for p in positives if p)
+    right = correct_matrix(served.ranking, positives)[:, 0]
+    loops = np.array([s == "loop" for s in served.status], bool)
+    true_loops, false_loops = int(np.sum(loops & right)), int(np.sum(loops & ~right))
+    queries = len(loops)
+    return {
+        "threshold": served.threshold,
+        "loops": int(loops.sum()),
+        "precision": true_loops / max(int(loops.sum()), 1),
+        "recall": true_loops / max(answerable, 1),
+        "false_loops": false_loops,
+        "false_loops_per_1000": 1000.0 * false_loops / max(queries, 1),
+        "right_called_new_place": int(
+            sum(1 for s, r in zip(served.status, right, strict=True) if r and s == "new_place")
+        ),
+    }

@@ -1,0 +1,97 @@
+"""The loop decision's probability: what each part does, and what it refuses."""
+
+from __future__ import annotations
+
+from service.atlas.decision import SMALL_ATLAS_FRAMES, verified_count
+from service.ml.decision import DEFAULT_LOOP_PROBABILITY, Evidence, decide_loop
+
+
+def test_a_well_verified_distinct_calibrated_match_is_a_loop() -> None:
+    evidence = Evidence(
+        inliers=180, inlier_ratio=0.8, rival_inliers=20, score_excess=4.0, frames=500
+    )
+    decision = decide_loop(evidence, min_inliers=44)
+    assert decision.passed and decision.loop_probability is not None
+    assert decision.loop_probability >= DEFAULT_LOOP_PROBABILITY
+    assert decision.failed is None and decision.reason is None
+    assert set(decision.contributions) == {"inliers", "inlier_ratio", "rival", "score"}
+
+
+def test_look_alike_with_a_high_score_but_no_geometry_is_refused() -> None:
+    """Two places whose embeddings agree (score far above every impostor) but whose views do
+    not: the geometry fails, and the answer says it was the inliers."""
+    evidence = Evidence(inliers=6, inlier_ratio=0.1, score_excess=8.0, frames=500)
+    decision = decide_loop(evidence, min_inliers=44)
+    assert not decision.passed
+    assert decision.failed == "inliers"
+    assert decision.reason is not None and "6 inliers, below 44" in decision.reason
+
+
+def test_a_rival_place_that_verifies_as_well_holds_the_loop_back() -> None:
+    alone = Evidence(inliers=90, inlier_ratio=0.7, rival_inliers=5, score_excess=3.0, frames=500)
+    rivalled = Evidence(
+        inliers=90, inlier_ratio=0.7, rival_inliers=85, score_excess=3.0, frames=500
+    )
+    p_alone = decide_loop(alone, min_inliers=44).loop_probability
+    decision = decide_loop(rivalled, min_inliers=44)
+    assert p_alone is not None and decision.loop_probability is not None
+    assert decision.loop_probability < p_alone
+    assert not decision.passed and decision.failed == "rival"
+
+
+def test_probability_grows_with_inliers() -> None:
+    values = [
+        decide_loop(Evidence(inliers=n, inlier_ratio=0.6, frames=10)).loop_probability
+        for n in (0, 10, 40, 100, 300)
+    ]
+    assert all(v is not None for v in values)
+    assert values == sorted(values)  # type: ignore[type-var]
+
+
+def test_small_uncalibrated_atlas_answers_with_a_reason() -> None:
+    decision = decide_loop(Evidence(inliers=30, inlier_ratio=0.9, frames=10), min_inliers=44)
+    assert decision.loop_probability is not None
+    assert decision.reason is not None and "not calibrated yet" in decision.reason
+    assert "score" not in decision.contributions
+
+
+def test_no_candidate_and_no_verification_say_why() -> None:
+    empty = decide_loop(None)
+    assert empty.loop_probability is None and empty.reason is not None
+    off = decide_loop(Evidence(score_excess=5.0, frames=100), verify=False)
+    assert not off.passed and off.reason is not None and "verification is off" in off.reason
+
+
+def test_small_atlases_verify_every_candidate() -> None:
+    assert verified_count(5, 10) == 10
+    assert verified_count(5, SMALL_ATLAS_FRAMES + 1) == 5
+    assert verified_count(0, 10) == 0
+
+
+def test_rivals_are_frames_of_another_place() -> None:
+    """Same robot: more than 2 frames away along its trajectory; another robot: another
+    submap. The best verified rival's inliers enter the evidence."""
+    from service.atlas.decision import answer_evidence
+    from service.atlas.results import Candidate
+
+    def candidate(frame_id: int, inliers: int, robot: str = "r", submap: str = "s") -> Candidate:
+        return Candidate(frame_id, submap, robot, 0.9, inliers, None, 0.8, inliers >= 44)
+
+    best = candidate(10, 80)
+    near, far = candidate(12, 70), candidate(20, 30)
+    other_robot_same_submap = candidate(40, 75, robot="q")
+    evidence = answer_evidence([best, near, far, other_robot_same_submap], 100, None)
+    assert evidence is not None and evidence.rival_inliers == 30
+    evidence = answer_evidence([best, candidate(41, 60, robot="q", submap="t")], 100, None)
+    assert evidence is not None and evidence.rival_inliers == 60
+
+
+def test_a_match_no_rarer_than_the_best_impostor_is_never_a_loop() -> None:
+    """Geometry alone cannot close a loop on a calibrated atlas: 71 clean inliers between
+    two look-alike frames, but a score below log10(frames)."""
+    evidence = Evidence(
+        inliers=71, inlier_ratio=1.0, rival_inliers=20, score_excess=-0.9, frames=400
+    )
+    decision = decide_loop(evidence, min_inliers=44)
+    assert not decision.passed and decision.failed == "score"
+    assert decision.reason is not None and "log10(400)" in decision.reason

@@ -25,19 +25,16 @@ import httpx
 from pydantic import BaseModel, TypeAdapter
 
 from service.api.schemas import (
-    ApiKeyOut,
     AtlasOut,
     FrameOut,
-    JobOut,
     LoopClosureOut,
     ModelVersionOut,
-    NewApiKeyOut,
     ObserveOut,
-    PairOut,
     QueryOut,
     ReadyOut,
     SubmapOut,
 )
+from service.api.schemas_admin import ApiKeyOut, JobOut, NewApiKeyOut, PairOut
 from service.api.schemas_browse import (
     CallerOut,
     ClosureMatchesOut,

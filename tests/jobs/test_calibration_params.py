@@ -3,7 +3,7 @@ fit: the API's defaults are the fit's own (they once said 64 VLAD words against 
 
 from __future__ import annotations
 
-from service.api.schemas import JobIn
+from service.api.schemas_admin import JobIn
 from service.jobs.calibration import calibration_config
 from service.ml.calibration import CalibrationConfig
 

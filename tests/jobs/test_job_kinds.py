@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.api.schemas import JOB_PARAMS, JobIn
+from service.api.schemas_admin import JOB_PARAMS, JobIn
 from service.domain.statuses import JobKind
 from service.errors import InvalidInput
 from service.jobs.kinds import KINDS, kind_of

@@ -8,7 +8,8 @@ from fastapi import APIRouter, status
 
 from service.api.auth import OperatorAccess
 from service.api.deps import RowId, RuntimeDep, ServiceDep
-from service.api.schemas import ErrorOut, JobIn, JobOut
+from service.api.schemas import ErrorOut
+from service.api.schemas_admin import JobIn, JobOut
 
 if TYPE_CHECKING:
     from service.storage.models import Job

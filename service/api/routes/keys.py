@@ -15,7 +15,8 @@ from fastapi import APIRouter, status
 
 from service.api.auth import AdminAccess
 from service.api.deps import RowId, RuntimeDep
-from service.api.schemas import ApiKeyIn, ApiKeyOut, ErrorOut, NewApiKeyOut
+from service.api.schemas import ErrorOut
+from service.api.schemas_admin import ApiKeyIn, ApiKeyOut, NewApiKeyOut
 from service.errors import Forbidden
 from service.fleet.keys import Role
 

@@ -10,7 +10,8 @@ from fastapi import APIRouter, Query, Response, status
 
 from service.api.auth import OperatorAccess
 from service.api.deps import RowId, ServiceDep
-from service.api.schemas import ErrorOut, PairIn, PairOut
+from service.api.schemas import ErrorOut
+from service.api.schemas_admin import PairIn, PairOut
 from service.atlas import revisit_pairs
 from service.atlas.names import validate_name
 

@@ -49,7 +49,7 @@ def answer_evidence(
         inlier_ratio=best.inlier_ratio,
         rival_inliers=max(rivals) if rivals else None,
         score_excess=score_excess,
-        sequence_margin=sequence.margin if informative(sequence) else None,
+        sequence_margin=sequence.margin if sequence is not None and informative(sequence) else None,
         frames=frames,
     )
 

@@ -49,9 +49,15 @@ def answer_evidence(
         inlier_ratio=best.inlier_ratio,
         rival_inliers=max(rivals) if rivals else None,
         score_excess=score_excess,
-        sequence_margin=sequence.margin if sequence is not None else None,
+        sequence_margin=sequence.margin if sequence is not None and informative(sequence) else None,
         frames=frames,
     )
+
+
+def informative(sequence: SequenceAnswer | None) -> bool:
+    """A sequence's margin means something only against a rival place and over more than one
+    frame: a robot's first frames, or a map with one place, have none to stand out from."""
+    return sequence is not None and sequence.rival_frame_id is not None and sequence.length > 1
 
 
 def probable_candidate(verdict: Verdict, decision: Decision) -> Verdict:

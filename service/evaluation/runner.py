@@ -464,8 +464,77 @@ def adapted_rows(
     )
 
 
+@dataclass
+class LoadedData:
+    """The dataset a run evaluates, after its slice, stride and unreadable images."""
+
+    dataset: Dataset
+    submap_of: list[int]
+    submap_note: str
+    unreadable: dict[Path, str]
+    output: Path
+    cache_dir: Path
+
+
+@dataclass
+class EvalRun:
+    """What the steps of a run fill in: rows, stage timings, what was skipped and why, the
+    extractor passes and what the later rows start from."""
+
+    config: EvalConfig
+    data: LoadedData
+    methods: list[MethodResult] = field(default_factory=list)
+    global_only: list[MethodResult] = field(default_factory=list)
+    stages: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    passes: list[PassResult] = field(default_factory=list)
+    first_keypoints: KeypointCache | None = None
+    calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    calibrated_branches: dict[str, CalibratedBranches] = field(default_factory=dict)
+    retraining: list[RetrainingRow] = field(default_factory=list)
+
+    @property
+    def first_pass(self) -> PassResult:
+        """The first extractor's pass: the "LoopNet" rows and every later step start from it."""
+        return self.passes[0]
+
+    def report(self, partial: str | None) -> dict[str, Any]:
+        data = self.data
+        return _report(
+            self.config,
+            data.dataset,
+            data.submap_note,
+            self.first_pass,
+            self.methods + self.global_only,
+            self.stages,
+            self.skipped,
+            self.retraining,
+            data.unreadable,
+            partial,
+        )
+
+    def checkpoint(self, next_step: str) -> None:
+        """Write the rows done so far (no plots): a run stopped later keeps them."""
+        if self.passes:
+            report = self.report(f"stopped before {next_step}")
+            output = self.data.output
+            reporting.write_json(report, output / "report.json")
+            reporting.write_markdown(report, self.methods + self.global_only, output / "report.md")
+
+
 def run_evaluation(config: EvalConfig) -> EvalResult:
-    """Run every method on ``config.dataset`` and write the report into ``config.output``."""
+    """Run every method on ``config.dataset`` and write the report into ``config.output``:
+    load the data, run one service pass per extractor, add the ablations (retraining,
+    adaptation, verification, sequences, baselines), write the report."""
+    run = EvalRun(config, load_data(config))
+    run_passes(run)
+    run_ablations(run)
+    return write_report(run)
+
+
+def load_data(config: EvalConfig) -> LoadedData:
+    """The dataset, sliced (``limit``, ``query_stride``), without unreadable images, with the
+    protocol's submaps."""
     dataset = load_dataset(
         config.dataset,
         layout=config.layout,
@@ -495,48 +564,22 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         len(dataset.queries),
         dataset.ground_truth,
     )
+    return LoadedData(dataset, submap_of, submap_note, unreadable, output, cache_dir)
 
-    methods: list[MethodResult] = []
-    global_only: list[MethodResult] = []
-    stages: dict[str, dict[str, dict[str, float]]] = {}
-    skipped: dict[str, str] = {}
-    first_pass: PassResult | None = None
-    first_keypoints: KeypointCache | None = None
-    passes: list[PassResult] = []
-    calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    calibrated_branches: dict[str, CalibratedBranches] = {}
-    retraining: list[RetrainingRow] = []
 
-    def report_so_far(partial: str | None) -> dict[str, Any]:
-        assert first_pass is not None
-        return _report(
-            config,
-            dataset,
-            submap_note,
-            first_pass,
-            methods + global_only,
-            stages,
-            skipped,
-            retraining,
-            unreadable,
-            partial,
-        )
-
-    def checkpoint(next_step: str) -> None:
-        """Write the rows done so far (no plots): a run stopped later keeps them."""
-        if first_pass is not None:
-            report = report_so_far(f"stopped before {next_step}")
-            reporting.write_json(report, output / "report.json")
-            reporting.write_markdown(report, methods + global_only, output / "report.md")
-
-    # the calibrated rows need as many references as a calibration job does
+def run_passes(run: EvalRun) -> None:
+    """One service pass per local extractor, with its calibrated, uncalibrated and served rows
+    (the calibrated rows need as many references as a calibration job does)."""
+    config, data = run.config, run.data
+    dataset, submap_of = data.dataset, data.submap_of
     calibrates = len(dataset.references) >= CALIBRATION_MIN_FRAMES
     if not calibrates:
-        skipped["calibration"] = (
+        run.skipped["calibration"] = (
             f"{len(dataset.references)} references; a calibration needs {CALIBRATION_MIN_FRAMES}"
         )
-        log.warning("no calibrated rows: %s", skipped["calibration"])
+        log.warning("no calibrated rows: %s", run.skipped["calibration"])
     for extractor in tqdm(config.extractors, desc="extractors", unit="pass"):
+        first = not run.passes
         preset = resolve_preset(
             config.preset,
             extractor=extractor,
@@ -547,18 +590,18 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
         try:
             pipeline = FeaturePipeline(preset, config.precision)
         except WeightsUnavailable as exc:
-            skipped[extractor] = str(exc)
+            run.skipped[extractor] = str(exc)
             log.warning("skipping %s: %s", extractor, exc)
             continue
         keypoints = None
-        if config.verify and first_pass is None:
-            keypoints = KeypointCache(output / "keypoints", pipeline.local)
+        if config.verify and first:
+            keypoints = KeypointCache(data.output / "keypoints", pipeline.local)
         result = run_service_pass(
             dataset,
             submap_of,
             pipeline,
             k=config.k,
-            cache_dir=cache_dir,
+            cache_dir=data.cache_dir,
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
             calibration={
@@ -581,122 +624,158 @@ def run_evaluation(config: EvalConfig) -> EvalResult:
                     result,
                     alphas=config.alphas,
                     k=config.k,
-                    with_global_only=first_pass is None,
-                    vectors=calibrated_vectors,
-                    branches=calibrated_branches,
+                    with_global_only=first,
+                    vectors=run.calibrated_vectors,
+                    branches=run.calibrated_branches,
                 )
                 if calibrates
                 else []
             )
         except ValueError as exc:  # too few references to fit a calibration (impostor pairs)
-            skipped[f"{extractor} calibration"] = str(exc)
+            run.skipped[f"{extractor} calibration"] = str(exc)
             log.warning("no calibrated rows for %s: %s", extractor, exc)
             calibrated = []
         uncalibrated = _loopnet_methods(
-            config, dataset, submap_of, extractor, result, with_global_only=first_pass is None
+            config, dataset, submap_of, extractor, result, with_global_only=first
         )
         served = _served_rows(extractor, result, dataset, submap_of)
         for method in calibrated + uncalibrated + served:
-            (global_only if method.name.startswith("global-only") else methods).append(method)
-        stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
+            global_row = method.name.startswith("global-only")
+            (run.global_only if global_row else run.methods).append(method)
+        run.stages[f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"] = {
             name: summary(values) for name, values in result.stage_ms.items()
         }
-        passes.append(result)
-        if first_pass is None:
-            first_pass, first_keypoints = result, keypoints
-        checkpoint("the next extractor's pass")
-    if first_pass is None:
-        raise RuntimeError(f"no local extractor could run: {skipped}")
-    methods += global_only
-    global_only = []
-    if config.retrain_shots:
-        # the heads start from the service row: calibrated when the pass could calibrate
-        extractor = first_pass.preset.local.name
-        service_row = f"loopnet-{extractor}"
-        calibrated_start = calibrated_branches.get(service_row)
-        before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
-        before = next(m for m in methods if m.name == before_row)
-        retraining = retraining_rows(
-            dataset,
-            submap_of,
-            first_pass,
-            StartingPoint.of(first_pass, before, calibrated_start),
-            shots=config.retrain_shots,
-            protocols=config.retrain_protocols,
-            params=config.retrain_params,
-            k=config.k,
-            extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
-        )
-        methods += [row.after for row in retraining]
-        checkpoint("verification and baselines")
-    if config.adapt_shots:
-        retraining += adapted_rows(
-            config, dataset, submap_of, first_pass, calibrated_branches, methods
-        )
-        methods += [row.after for row in retraining if row.protocol == ADAPT_PROTOCOL]
-        checkpoint("verification and baselines")
-    if config.verify and first_keypoints is not None:
-        extractor_name = first_pass.preset.local.name
-        verified, verification_stages = verification_methods(
-            dataset,
-            submap_of,
-            first_pass.ranking,
-            first_pass.query_ms,
-            matchers=config.verify,
-            top=config.verify_top,
-            ransac_backend=config.ransac_backend,
-            cache=first_keypoints,
-            similarity_threshold=first_pass.threshold,
-            extractor_label=EXTRACTOR_LABELS.get(extractor_name, extractor_name),
-        )
-        methods += verified
-        stages.update(verification_stages)
-        checkpoint("the baselines")
-    if config.sequence:
-        bases = []
-        rows = {m.name: m for m in methods}
-        for result in passes:
-            extractor = result.preset.local.name
-            calibrated_row = f"loopnet-{extractor}"
-            if calibrated_row in calibrated_vectors:
-                bases.append((rows[calibrated_row], *calibrated_vectors[calibrated_row]))
-            bases.append(
-                (
-                    rows[f"{calibrated_row}-uncalibrated"],
-                    *_unit_embeddings(result, result.preset.alpha),
-                )
-            )
-        if "global-only" in calibrated_vectors:
-            bases.append((rows["global-only"], *calibrated_vectors["global-only"]))
-        if "global-only-uncalibrated" in rows:
-            bases.append((rows["global-only-uncalibrated"], *_unit_embeddings(first_pass, 0.0)))
-        methods += sequence_methods(
-            bases,
-            dataset,
-            submap_of,
-            config.sequence,
-            config.k,
-            SequenceSettings(
-                contrast_window=config.sequence_contrast,
-                seed_frames=config.sequence_seed_frames,
-            ),
-        )
-        checkpoint("the baselines")
-    for name in config.baselines:
-        method, baseline_stages, similarity = _baseline_method(
-            name, first_pass.preset.local.long_side, dataset, submap_of, config.k
-        )
-        methods.append(method)
-        stages[method.label] = baseline_stages
-        if config.sequence and name == "seqslam-sad":
-            methods += _full_seqslam_methods(
-                similarity, method, dataset, submap_of, config.sequence, config.k
-            )
-        checkpoint("the remaining baselines and the plots")
+        run.passes.append(result)
+        if first:
+            run.first_keypoints = keypoints
+        run.checkpoint("the next extractor's pass")
+    if not run.passes:
+        raise RuntimeError(f"no local extractor could run: {run.skipped}")
+    run.methods += run.global_only
+    run.global_only = []
 
-    report = report_so_far(None)
-    _write_final(config, dataset, methods, report)
-    return EvalResult(report, methods, retraining)
+
+def run_ablations(run: EvalRun) -> None:
+    """The rows that start from the passes: retraining and adaptation (the first pass's
+    heads), verification, sequences, then the classical baselines."""
+    config = run.config
+    if config.retrain_shots:
+        _retraining_step(run)
+        run.checkpoint("verification and baselines")
+    if config.adapt_shots:
+        run.retraining += adapted_rows(
+            config,
+            run.data.dataset,
+            run.data.submap_of,
+            run.first_pass,
+            run.calibrated_branches,
+            run.methods,
+        )
+        run.methods += [row.after for row in run.retraining if row.protocol == ADAPT_PROTOCOL]
+        run.checkpoint("verification and baselines")
+    if config.verify and run.first_keypoints is not None:
+        _verification_step(run, run.first_keypoints)
+        run.checkpoint("the baselines")
+    if config.sequence:
+        _sequence_step(run)
+        run.checkpoint("the baselines")
+    for name in config.baselines:
+        _baseline_step(run, name)
+        run.checkpoint("the remaining baselines and the plots")
+
+
+def write_report(run: EvalRun) -> EvalResult:
+    """The full report: report.json, report.md and the plots."""
+    report = run.report(None)
+    _write_final(run.config, run.data.dataset, run.methods, report)
+    return EvalResult(report, run.methods, run.retraining)
+
+
+def _retraining_step(run: EvalRun) -> None:
+    # the heads start from the service row: calibrated when the pass could calibrate
+    config, first_pass = run.config, run.first_pass
+    extractor = first_pass.preset.local.name
+    service_row = f"loopnet-{extractor}"
+    calibrated_start = run.calibrated_branches.get(service_row)
+    before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
+    before = next(m for m in run.methods if m.name == before_row)
+    run.retraining = retraining_rows(
+        run.data.dataset,
+        run.data.submap_of,
+        first_pass,
+        StartingPoint.of(first_pass, before, calibrated_start),
+        shots=config.retrain_shots,
+        protocols=config.retrain_protocols,
+        params=config.retrain_params,
+        k=config.k,
+        extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
+    )
+    run.methods += [row.after for row in run.retraining]
+
+
+def _verification_step(run: EvalRun, keypoints: KeypointCache) -> None:
+    config, first_pass = run.config, run.first_pass
+    extractor_name = first_pass.preset.local.name
+    verified, verification_stages = verification_methods(
+        run.data.dataset,
+        run.data.submap_of,
+        first_pass.ranking,
+        first_pass.query_ms,
+        matchers=config.verify,
+        top=config.verify_top,
+        ransac_backend=config.ransac_backend,
+        cache=keypoints,
+        similarity_threshold=first_pass.threshold,
+        extractor_label=EXTRACTOR_LABELS.get(extractor_name, extractor_name),
+    )
+    run.methods += verified
+    run.stages.update(verification_stages)
+
+
+def _sequence_step(run: EvalRun) -> None:
+    """``+seqL`` rows over each pass's calibrated and uncalibrated rows and the global branch."""
+    config = run.config
+    bases = []
+    rows = {m.name: m for m in run.methods}
+    for result in run.passes:
+        extractor = result.preset.local.name
+        calibrated_row = f"loopnet-{extractor}"
+        if calibrated_row in run.calibrated_vectors:
+            bases.append((rows[calibrated_row], *run.calibrated_vectors[calibrated_row]))
+        bases.append(
+            (
+                rows[f"{calibrated_row}-uncalibrated"],
+                *_unit_embeddings(result, result.preset.alpha),
+            )
+        )
+    if "global-only" in run.calibrated_vectors:
+        bases.append((rows["global-only"], *run.calibrated_vectors["global-only"]))
+    if "global-only-uncalibrated" in rows:
+        bases.append((rows["global-only-uncalibrated"], *_unit_embeddings(run.first_pass, 0.0)))
+    run.methods += sequence_methods(
+        bases,
+        run.data.dataset,
+        run.data.submap_of,
+        config.sequence,
+        config.k,
+        SequenceSettings(
+            contrast_window=config.sequence_contrast,
+            seed_frames=config.sequence_seed_frames,
+        ),
+    )
+
+
+def _baseline_step(run: EvalRun, name: str) -> None:
+    config, data = run.config, run.data
+    method, baseline_stages, similarity = _baseline_method(
+        name, run.first_pass.preset.local.long_side, data.dataset, data.submap_of, config.k
+    )
+    run.methods.append(method)
+    run.stages[method.label] = baseline_stages
+    if config.sequence and name == "seqslam-sad":
+        run.methods += _full_seqslam_methods(
+            similarity, method, data.dataset, data.submap_of, config.sequence, config.k
+        )
 
 
 def _report(

@@ -101,6 +101,7 @@ def test_a_run_stopped_midway_keeps_the_rows_it_finished(views_tree: Path, tmp_p
     assert [m["name"] for m in report["methods"]] == [
         "loopnet-xfeat-uncalibrated",
         "xfeat-local-only-uncalibrated",
+        "loopnet-xfeat-served",
         "global-only-uncalibrated",
         "seqslam-sad",
     ]

@@ -201,6 +201,7 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         "xfeat-calibrated-unwhitened",
         "loopnet-xfeat-uncalibrated",
         "xfeat-local-only-uncalibrated",
+        "loopnet-xfeat-served",
         "global-only",
         "global-only-uncalibrated",
         "retrained-map-k1",

@@ -3,33 +3,15 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pydantic import BaseModel, Field
 
-from service.atlas.names import NAME_PATTERN
-from service.domain.statuses import (
-    CalibrationState,
-    JobKind,
-    JobStatus,
-    PlaceStatus,
-    Role,
-    literal_of,
+from service.api.closed_sets import (
+    CalibrationStateValue,
+    PlaceStatusValue,
 )
-
-# The closed sets, inline in the OpenAPI spec (as Literals), defined once in service.domain.
-if TYPE_CHECKING:
-    CalibrationStateValue = str
-    PlaceStatusValue = str
-    JobKindValue = str
-    JobStatusValue = str
-    RoleName = str
-else:
-    CalibrationStateValue = literal_of(CalibrationState)
-    PlaceStatusValue = literal_of(PlaceStatus)
-    JobKindValue = literal_of(JobKind)
-    JobStatusValue = literal_of(JobStatus)
-    RoleName = literal_of(Role)
+from service.atlas.names import NAME_PATTERN
 
 
 class ErrorOut(BaseModel):

@@ -5,37 +5,22 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from service.api.closed_sets import (
+    JobKindValue,
+    JobStatusValue,
+    RoleName,
+)
 from service.domain.statuses import (
     AggregatorName,
-    CalibrationState,
-    JobKind,
-    JobStatus,
-    PlaceStatus,
-    Role,
-    literal_of,
 )
 from service.jobs.adaptation_config import AdaptConfig
 from service.ml.calibration_config import CalibrationConfig
 from service.ml.training import TrainingConfig
-
-# The closed sets, inline in the OpenAPI spec (as Literals), defined once in service.domain.
-if TYPE_CHECKING:
-    CalibrationStateValue = str
-    PlaceStatusValue = str
-    JobKindValue = str
-    JobStatusValue = str
-    RoleName = str
-else:
-    CalibrationStateValue = literal_of(CalibrationState)
-    PlaceStatusValue = literal_of(PlaceStatus)
-    JobKindValue = literal_of(JobKind)
-    JobStatusValue = literal_of(JobStatus)
-    RoleName = literal_of(Role)
 
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))

@@ -21,11 +21,9 @@ from service.jobs.adaptation_config import AdaptConfig as AdaptConfig
 from service.ml.active_model import ActiveModel
 from service.ml.adaptation import NoUsefulPairs, adapt_heads
 from service.ml.pair_whitening import PairWhiteningConfig
-from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import TrainingCancelled, TrainingData
 from service.storage import jobs
 from service.storage import repository as repo
-from service.storage.feature_store import load_calibration_inputs
 
 if TYPE_CHECKING:
     from service.jobs.retraining import JobRunner
@@ -65,24 +63,9 @@ def run_adaptation(
     with runner.sessions() as session:
         if jobs.get_job(session, job_id=job_id).cancel_requested:
             raise TrainingCancelled("cancelled after fitting")
-        version = 1 + max(v.version for v in repo.list_model_versions(session, atlas_id=atlas_id))
-    weights = models_store.weights_file(runner.settings.models_dir, atlas_id, version)
-    files.append(weights)
-    result.heads.save(weights)
-    version_calibration = None
-    if calibration is not None and active_config.calibration is not None:
-        runner._progress(job_id, 40, "refitting the impostor model")
-        with runner.sessions() as session:
-            inputs = load_calibration_inputs(session, atlas_id)
-        calibration.impostors = retrained_impostor_model(result.heads, calibration, inputs)
-        del inputs
-        path = models_store.calibration_file(runner.settings.models_dir, atlas_id, version)
-        files.append(path)
-        calibration.save(path)
-        version_calibration = {
-            **active_config.calibration,
-            "path": str(path.relative_to(runner.settings.models_dir)),
-        }
+    version, weights, version_calibration = runner.write_version_files(
+        job_id, atlas_id, result.heads, calibration, active_config, files, progress=40
+    )
     metrics: dict[str, Any] = {**result.metrics, "held_out": gate, "activated": activate}
     if activate:
         runner._progress(job_id, 50, f"re-embedding {len(stored)} frames from stored features")

@@ -18,7 +18,8 @@ import logging
 import time
 import traceback
 from dataclasses import asdict
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -32,7 +33,7 @@ from service.index.store import fill_version_table
 from service.jobs.kinds import KINDS
 from service.ml.active_model import ActiveModel
 from service.ml.adaptation import NoUsefulPairs
-from service.ml.heads import HeadsConfig
+from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import compare_on_held_out, split_for_job
 from service.ml.retrained_impostors import retrained_impostor_model
 from service.ml.training import (
@@ -46,6 +47,9 @@ from service.storage import repository as repo
 from service.storage.db import transaction
 from service.storage.feature_store import load_calibration_inputs
 from service.storage.models import Atlas, Job, JobStatus
+
+if TYPE_CHECKING:
+    from service.ml.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -163,29 +167,9 @@ class JobRunner:
             active_heads, result.heads, data, split.held_out, config.positive_window
         )
         activate = gate["not_worse"] or self.settings.retrain_activate_worse
-        with self.sessions() as session:
-            version = 1 + max(
-                v.version for v in repo.list_model_versions(session, atlas_id=atlas_id)
-            )
-        weights = models_store.weights_file(self.settings.models_dir, atlas_id, version)
-        files.append(weights)
-        result.heads.save(weights)
-        version_calibration = None
-        if calibration is not None and active_config.calibration is not None:
-            # a trained embedding changes what a cosine means: refit the impostor model on it,
-            # as the calibration fitted it (unseen frames against seen ones)
-            self._progress(job_id, 76, "refitting the impostor model")
-            with self.sessions() as session:
-                inputs = load_calibration_inputs(session, atlas_id)
-            calibration.impostors = retrained_impostor_model(result.heads, calibration, inputs)
-            del inputs
-            path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
-            files.append(path)
-            calibration.save(path)
-            version_calibration = {
-                **active_config.calibration,
-                "path": str(path.relative_to(self.settings.models_dir)),
-            }
+        version, weights, version_calibration = self.write_version_files(
+            job_id, atlas_id, result.heads, calibration, active_config, files, progress=76
+        )
 
         metrics: dict[str, Any] = {**result.metrics, "held_out": gate, "activated": activate}
         if activate:
@@ -212,6 +196,44 @@ class JobRunner:
             message=f"model version {version} {verdict}",
         )
         return version
+
+    def write_version_files(
+        self,
+        job_id: int,
+        atlas_id: int,
+        heads: LoopNetHeads,
+        calibration: Calibration | None,
+        active_config: models_store.VersionConfig,
+        files: list[Any],
+        *,
+        progress: float,
+    ) -> tuple[int, Path, dict[str, Any] | None]:
+        """The next version's number, its heads' weights file and, on a calibrated atlas, its
+        calibration with the impostor model refitted on the new heads (a trained embedding
+        changes what a cosine means; refitted as the calibration fitted it, unseen frames
+        against seen ones). Every file written is appended to ``files``."""
+        with self.sessions() as session:
+            version = 1 + max(
+                v.version for v in repo.list_model_versions(session, atlas_id=atlas_id)
+            )
+        weights = models_store.weights_file(self.settings.models_dir, atlas_id, version)
+        files.append(weights)
+        heads.save(weights)
+        if calibration is None or active_config.calibration is None:
+            return version, weights, None
+        self._progress(job_id, progress, "refitting the impostor model")
+        with self.sessions() as session:
+            inputs = load_calibration_inputs(session, atlas_id)
+        calibration.impostors = retrained_impostor_model(heads, calibration, inputs)
+        del inputs
+        path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
+        files.append(path)
+        calibration.save(path)
+        return (
+            version,
+            weights,
+            {**active_config.calibration, "path": str(path.relative_to(self.settings.models_dir))},
+        )
 
     def publish(
         self,

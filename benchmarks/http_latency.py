@@ -36,7 +36,7 @@ import httpx
 import numpy as np
 from load import cpu_seconds  # the sibling script (its folder is on the path)
 
-from service.atlas.ingest import FrameFields
+from service.app.ingest import FrameFields
 from service.features_payload import encode_features
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline

@@ -1,5 +1,5 @@
 """What sequence scoring and temporal consistency add to one observe, through the service's own
-code: :class:`service.atlas.sequences.SequenceScorer` on a real SQLite database of ``--frames``
+code: :class:`service.app.sequences.SequenceScorer` on a real SQLite database of ``--frames``
 frame rows and the service's :class:`AtlasIndex` (inverted file at this size).
 
 The atlas is ``--robots`` trajectories (``synthetic_embeddings.py``, one place per frame, one
@@ -29,9 +29,9 @@ from sqlalchemy import create_engine, insert
 from sqlalchemy.orm import sessionmaker
 from synthetic_embeddings import ClusteredEmbeddings, unit_rows
 
-from service.atlas.filters import Selection
-from service.atlas.sequences import RobotContext, SequenceScorer
-from service.atlas.state import LoadedAtlas
+from service.app.filters import Selection
+from service.app.sequences import RobotContext, SequenceScorer
+from service.app.state import LoadedAtlas
 from service.config import Settings
 from service.index import AtlasIndex, IndexPolicy
 from service.storage.models import Atlas, Base, Frame, FrameProposals, Submap

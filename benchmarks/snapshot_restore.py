@@ -22,7 +22,7 @@ import numpy as np
 from sqlalchemy import insert
 from synthetic_embeddings import ClusteredEmbeddings
 
-from service.atlas import model_versions as models_store
+from service.app import model_versions as models_store
 from service.config import Settings
 from service.fleet.snapshot_restore import restore_atlas
 from service.fleet.snapshots import export_atlas

@@ -111,9 +111,9 @@ def decision_cost(image: Path, repeats: int) -> None:
     query's stages (decode, DISK 512 px / 1024 kp, MobileNetV2 224, verification of 5
     candidates by MNN + RANSAC) beside today's decision (``verification.decide``) and the new
     one (``answer_evidence`` + ``decide_loop`` + ``probable_candidate``), p50 CPU ms."""
-    from service.atlas.decision import answer_evidence, probable_candidate
-    from service.atlas.results import Candidate
-    from service.atlas.sequences import single_frame_verdict
+    from service.app.decision import answer_evidence, probable_candidate
+    from service.app.results import Candidate
+    from service.app.sequences import single_frame_verdict
     from service.ml.decision import decide_loop
     from service.ml.verification import decide
 

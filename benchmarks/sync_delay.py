@@ -30,9 +30,9 @@ import numpy as np
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 
-from service.atlas.catalog import AtlasService
-from service.atlas.change_feed import ChangeFollower
-from service.atlas.ingest import FrameFields
+from service.app.catalog import AtlasService
+from service.app.change_feed import ChangeFollower
+from service.app.ingest import FrameFields
 from service.config import Settings
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.pipeline import FeaturePipeline

@@ -18,7 +18,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from service.atlas.ingest import FrameFields
+from service.app.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import load_dataset
 from service.jobs.retraining import JobRunner

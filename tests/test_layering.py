@@ -16,7 +16,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ROOT / "service"
-APPLICATION = ("service.atlas", "service.jobs", "service.fleet", "service.index", "service.runtime")
+APPLICATION = ("service.app", "service.jobs", "service.fleet", "service.index", "service.runtime")
 
 
 def runtime_imports(source: str, package: str) -> set[str]:
@@ -167,7 +167,7 @@ FLOORS: dict[str, int] = {
     "index": 2,
     "features_payload": 2,
     # the application's use cases
-    "atlas": 3,
+    "app": 3,
     "jobs": 4,
     "fleet": 4,
     # the process and the harness that drives the use cases
@@ -265,7 +265,7 @@ def test_the_cycle_check_sees_a_cycle() -> None:
 
 
 def test_api_never_handles_sessions_nor_imports_storage() -> None:
-    """The HTTP layer calls use cases (:class:`~service.atlas.catalog.AtlasService`, the
+    """The HTTP layer calls use cases (:class:`~service.app.catalog.AtlasService`, the
     runtime's jobs, keys and snapshots); sessions and storage stay beneath them."""
     files = sorted((SERVICE / "api").rglob("*.py"))
     touching = sorted(

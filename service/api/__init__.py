@@ -1,1 +1,1 @@
-"""The HTTP layer: a thin FastAPI shell over :class:`service.atlas.catalog.AtlasService`."""
+"""The HTTP layer: a thin FastAPI shell over :class:`service.app.catalog.AtlasService`."""

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import Depends, Path, Request
 
-from service.atlas.catalog import AtlasService
+from service.app.catalog import AtlasService
 from service.domain.limits import MAX_ROW_ID
 from service.runtime import Runtime
 

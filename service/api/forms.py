@@ -11,8 +11,8 @@ from fastapi import Depends, Form
 from service.api.auth import acting_robot
 from service.api.schemas import IntrinsicsIn, PoseIn
 from service.api.uploads import parse_json_field
-from service.atlas.filters import QueryFilter, make_filter
-from service.atlas.ingest import FrameFields
+from service.app.filters import QueryFilter, make_filter
+from service.app.ingest import FrameFields
 from service.config import Settings
 from service.errors import InvalidInput
 from service.fleet.keys import Principal

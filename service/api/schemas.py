@@ -11,7 +11,7 @@ from service.api.closed_sets import (
     CalibrationStateValue,
     PlaceStatusValue,
 )
-from service.atlas.names import NAME_PATTERN
+from service.app.names import NAME_PATTERN
 
 
 class ErrorOut(BaseModel):

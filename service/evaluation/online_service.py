@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from service.atlas.ingest import FrameFields
+from service.app.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.service_pass import CachedFeatures

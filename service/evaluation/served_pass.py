@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from service.atlas.catalog import AtlasService
-from service.atlas.ingest import FrameFields
-from service.atlas.results import QueryResult
-from service.atlas.verify import CandidateVerification, verification_config
+from service.app.catalog import AtlasService
+from service.app.ingest import FrameFields
+from service.app.results import QueryResult
+from service.app.verify import CandidateVerification, verification_config
 from service.config import Settings
 from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from service.atlas.catalog import AtlasService
-from service.atlas.ingest import FrameFields
+from service.app.catalog import AtlasService
+from service.app.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking

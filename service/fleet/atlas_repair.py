@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import change_feed
-from service.atlas import model_versions as models_store
+from service.app import change_feed
+from service.app import model_versions as models_store
 from service.config import Settings
 from service.errors import InvalidInput
 from service.fleet.snapshot_restore import ABANDONED_AFTER, RESTORING_PREFIX

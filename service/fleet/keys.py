@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.names import validate_name
+from service.app.names import validate_name
 from service.config import Settings
 from service.domain.statuses import Role as Role
 from service.errors import Forbidden, InvalidInput, NotFound, TooManyFailures, Unauthorized

@@ -30,9 +30,9 @@ from sqlalchemy import delete, insert, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import model_versions as models_store
-from service.atlas import thumbnails
-from service.atlas.names import validate_name
+from service.app import model_versions as models_store
+from service.app import thumbnails
+from service.app.names import validate_name
 from service.config import Settings
 from service.errors import Conflict, InvalidInput
 from service.fleet.snapshot_archive import known_revisions, read_archive

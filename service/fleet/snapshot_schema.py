@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.atlas.names import NAME_PATTERN
+from service.app.names import NAME_PATTERN
 from service.errors import InvalidInput
 from service.fleet.snapshot_features import MAX_DIM
 from service.ml.geometry import Intrinsics, Pose

@@ -32,8 +32,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import __version__
-from service.atlas import model_versions as models_store
-from service.atlas import thumbnails
+from service.app import model_versions as models_store
+from service.app import thumbnails
 from service.config import Settings
 from service.errors import Conflict
 from service.fleet.snapshot_archive import (

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from service.atlas import model_versions as models_store
-from service.atlas.revisit_pairs import pair_frames
+from service.app import model_versions as models_store
+from service.app.revisit_pairs import pair_frames
 from service.index.builder import load_model_inputs
 from service.jobs.adaptation_config import AdaptConfig as AdaptConfig
 from service.ml.active_model import ActiveModel

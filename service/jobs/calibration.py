@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import model_versions as models_store
-from service.atlas.verify import verification_config
+from service.app import model_versions as models_store
+from service.app.verify import verification_config
 from service.config import Settings
 from service.index import AtlasIndex
 from service.index.store import fill_version_table

@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Any
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from service.atlas.model_versions import VersionConfig
-from service.atlas.revisit_pairs import pair_frames
+from service.app.model_versions import VersionConfig
+from service.app.revisit_pairs import pair_frames
 from service.domain.statuses import JobKind
 from service.errors import InvalidInput
 from service.jobs.adaptation import run_adaptation

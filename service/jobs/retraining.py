@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import change_feed
-from service.atlas import model_versions as models_store
+from service.app import change_feed
+from service.app import model_versions as models_store
 from service.config import Settings
 from service.index import AtlasIndex
 from service.index.builder import add_stored_frames, load_model_inputs

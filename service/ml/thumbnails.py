@@ -2,7 +2,7 @@
 
 The console shows frames through them; nothing else of an uploaded image is kept. Frames stored
 before thumbnails existed (or restored from an older snapshot) get :func:`placeholder`; storing
-and archiving them is :mod:`service.atlas.thumbnails`.
+and archiving them is :mod:`service.app.thumbnails`.
 """
 
 from __future__ import annotations

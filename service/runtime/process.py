@@ -13,8 +13,8 @@ import torch
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.catalog import AtlasService
-from service.atlas.change_feed import ChangeFollower
+from service.app.catalog import AtlasService
+from service.app.change_feed import ChangeFollower
 from service.config import Settings
 from service.errors import NotReady
 from service.fleet.atlas_repair import clean_unfinished_restores

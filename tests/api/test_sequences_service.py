@@ -18,8 +18,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from service.atlas.ingest import FrameFields
-from service.atlas.results import QueryResult
+from service.app.ingest import FrameFields
+from service.app.results import QueryResult
 from service.features_payload import encode_features
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage.models import FrameProposals

@@ -8,7 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.atlas.loop_closures import record_if_inter_robot
+from service.app.loop_closures import record_if_inter_robot
 from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo

@@ -13,8 +13,8 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.api.app import create_app
-from service.atlas.results import Candidate, QueryResult, SubmapGuess
-from service.atlas.revisit_pairs import record_verified
+from service.app.results import Candidate, QueryResult, SubmapGuess
+from service.app.revisit_pairs import record_verified
 from service.fleet.keys import Role, create_key
 from service.jobs.retraining import JobRunner
 from service.storage import jobs

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.atlas.decision import SMALL_ATLAS_FRAMES, verified_count
+from service.app.decision import SMALL_ATLAS_FRAMES, verified_count
 from service.ml.decision import DEFAULT_LOOP_PROBABILITY, Evidence, decide_loop
 
 
@@ -71,8 +71,8 @@ def test_small_atlases_verify_every_candidate() -> None:
 def test_rivals_are_frames_of_another_place() -> None:
     """Same robot: more than 2 frames away along its trajectory; another robot: another
     submap. The best verified rival's inliers enter the evidence."""
-    from service.atlas.decision import answer_evidence
-    from service.atlas.results import Candidate
+    from service.app.decision import answer_evidence
+    from service.app.results import Candidate
 
     def candidate(frame_id: int, inliers: int, robot: str = "r", submap: str = "s") -> Candidate:
         return Candidate(frame_id, submap, robot, 0.9, inliers, None, 0.8, inliers >= 44)

@@ -35,7 +35,7 @@ from schemathesis import GenerationMode
 from schemathesis.python.asgi import shutdown_lifespans
 from sqlalchemy import func, select
 
-from service.atlas.ingest import FrameFields
+from service.app.ingest import FrameFields
 from service.features_payload import encode_features
 from service.ml.images import decode_image
 from service.storage.models import Atlas, Frame, FrameFeatureRow, Job, ModelVersion, Submap

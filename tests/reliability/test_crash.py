@@ -23,7 +23,7 @@ import pytest
 from sqlalchemy import func, select
 
 from benchmarks.load import LiveServer
-from service.atlas.catalog import AtlasService
+from service.app.catalog import AtlasService
 from service.index import AtlasIndex
 from service.index.pgvector_store import PgVectorStore
 from service.storage import repository as repo

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Response, status
 from service.api.auth import AdminAccess, OperatorAccess, RobotAccess, UnscopedAdminAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import AtlasIn, AtlasOut, ErrorOut, ModelVersionOut, SubmapIn, SubmapOut
-from service.atlas.model_versions import VersionConfig
+from service.app.model_versions import VersionConfig
 
 if TYPE_CHECKING:
     from service.storage.models import ModelVersion

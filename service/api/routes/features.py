@@ -31,8 +31,8 @@ from service.api.forms import (
 from service.api.routes.frames import frame_out
 from service.api.schemas import ErrorOut, FrameOut, QueryOut
 from service.api.uploads import read_image_upload
-from service.atlas import reads
-from service.atlas.catalog import AtlasService
+from service.app import reads
+from service.app.catalog import AtlasService
 from service.features_payload import decode_features
 from service.ml.features import FrameFeatures
 

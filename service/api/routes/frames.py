@@ -18,7 +18,7 @@ from service.api.forms import (
 )
 from service.api.schemas import ErrorOut, FrameOut, IntrinsicsIn, PoseIn
 from service.api.uploads import read_image_upload
-from service.atlas import reads
+from service.app import reads
 
 router = APIRouter(tags=["frames"])
 ERRORS: dict[int | str, dict[str, Any]] = {

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Query
 from service.api.auth import RobotAccess
 from service.api.deps import ServiceDep
 from service.api.schemas import ErrorOut, LoopClosureOut
-from service.atlas.names import validate_name
+from service.app.names import validate_name
 
 router = APIRouter(tags=["loop closures"])
 

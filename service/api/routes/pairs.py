@@ -12,8 +12,8 @@ from service.api.auth import OperatorAccess
 from service.api.deps import RowId, ServiceDep
 from service.api.schemas import ErrorOut
 from service.api.schemas_admin import PairIn, PairOut
-from service.atlas import revisit_pairs
-from service.atlas.names import validate_name
+from service.app import revisit_pairs
+from service.app.names import validate_name
 
 router = APIRouter(tags=["revisit pairs"])
 ERRORS: dict[int | str, dict[str, object]] = {

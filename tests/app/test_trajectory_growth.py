@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.atlas.trajectory_growth import GrowingTrajectories
+from service.app.trajectory_growth import GrowingTrajectories
 from service.ml.sequences import Trajectories
 
 

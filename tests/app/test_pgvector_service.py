@@ -9,13 +9,13 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select, text
 
 from service.api.app import create_app
-from service.atlas import model_versions as models_store
+from service.app import model_versions as models_store
 from service.index.pgvector_store import PgVectorStore
 from service.index.store import fill_version_table
 from service.ml.active_model import ActiveModel
 from service.storage.models import AtlasChange, ModelVersion
 from tests.api.helpers import add_frame, create_atlas
-from tests.atlas.test_change_feed import add_untrained_version, within
+from tests.app.test_change_feed import add_untrained_version, within
 from tests.conftest import gardens_point_day_night, make_settings, wait_ready
 
 

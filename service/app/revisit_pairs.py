@@ -17,8 +17,8 @@ from sqlalchemy import func, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, aliased, sessionmaker
 
-from service.atlas.milestones import adaptation_due
-from service.atlas.results import QueryResult
+from service.app.milestones import adaptation_due
+from service.app.results import QueryResult
 from service.config import Settings
 from service.domain.pairs import PairFilter as PairFilter
 from service.errors import Conflict, InvalidInput, NotFound

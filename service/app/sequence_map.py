@@ -17,12 +17,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from sqlalchemy.orm import Session
 
-from service.atlas.trajectory_growth import GrowingTrajectories
+from service.app.trajectory_growth import GrowingTrajectories
 from service.ml.sequences import MapMoments, Trajectories
 from service.storage import repository as repo
 
 if TYPE_CHECKING:
-    from service.atlas.state import LoadedAtlas
+    from service.app.state import LoadedAtlas
 
 
 class SequenceMap:

@@ -16,8 +16,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.atlas.change_feed import ADD, changes_between, prune, record, revisions
-from service.atlas.model_versions import initial_version_config
+from service.app.change_feed import ADD, changes_between, prune, record, revisions
+from service.app.model_versions import initial_version_config
 from service.fleet.atlas_repair import activate_version
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database

@@ -13,26 +13,26 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.decision import answer_evidence, probable_candidate, verified_count
-from service.atlas.filters import QueryFilter, resolve
-from service.atlas.ingest import FrameIngest
-from service.atlas.observe import Observations, with_extraction_timings
-from service.atlas.results import (
+from service.app.decision import answer_evidence, probable_candidate, verified_count
+from service.app.filters import QueryFilter, resolve
+from service.app.ingest import FrameIngest
+from service.app.observe import Observations, with_extraction_timings
+from service.app.results import (
     Candidate,
     QueryResult,
     SubmapGuess,
     VerificationSummary,
     place_margin,
 )
-from service.atlas.sequences import (
+from service.app.sequences import (
     SERVICE_SEQUENCE,
     RobotContext,
     RobotEvidence,
     SequenceScorer,
     single_frame_verdict,
 )
-from service.atlas.state import AtlasStates, LoadedAtlas
-from service.atlas.verify import CandidateVerification
+from service.app.state import AtlasStates, LoadedAtlas
+from service.app.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
 from service.metrics import observe_stages
@@ -67,7 +67,7 @@ class Found:
 
 class AtlasQueries(Observations):
     """Query an atlas with an image or extracted features; observe (query, then insert: see
-    :class:`~service.atlas.observe.Observations`)."""
+    :class:`~service.app.observe.Observations`)."""
 
     def __init__(
         self,

@@ -2,8 +2,8 @@
 the API, the CLI and the evaluation harness call for ingest and queries.
 
 It owns the feature pipeline (CNNs), the database session factory, the inference gate and the
-loaded state of every atlas; the work itself lives in :mod:`service.atlas.state`,
-:mod:`service.atlas.ingest` and :mod:`service.atlas.query`.
+loaded state of every atlas; the work itself lives in :mod:`service.app.state`,
+:mod:`service.app.ingest` and :mod:`service.app.query`.
 """
 
 from __future__ import annotations
@@ -12,21 +12,21 @@ from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import change_feed, reads
-from service.atlas import model_versions as models_store
-from service.atlas.browse import Browse
-from service.atlas.closure_matches import ClosureMatches, closure_matches
-from service.atlas.filters import QueryFilter, make_filter
-from service.atlas.ingest import FrameFields, FrameIngest
-from service.atlas.loop_closures import record_if_inter_robot
-from service.atlas.names import validate_name
-from service.atlas.pairs import RevisitPairs
-from service.atlas.query import AtlasQueries
-from service.atlas.reads import Reads
-from service.atlas.results import QueryResult
-from service.atlas.revisit_pairs import record_verified
-from service.atlas.state import AtlasStates, LoadedAtlas
-from service.atlas.verify import CandidateVerification, verification_config
+from service.app import change_feed, reads
+from service.app import model_versions as models_store
+from service.app.browse import Browse
+from service.app.closure_matches import ClosureMatches, closure_matches
+from service.app.filters import QueryFilter, make_filter
+from service.app.ingest import FrameFields, FrameIngest
+from service.app.loop_closures import record_if_inter_robot
+from service.app.names import validate_name
+from service.app.pairs import RevisitPairs
+from service.app.query import AtlasQueries
+from service.app.reads import Reads
+from service.app.results import QueryResult
+from service.app.revisit_pairs import record_verified
+from service.app.state import AtlasStates, LoadedAtlas
+from service.app.verify import CandidateVerification, verification_config
 from service.concurrency import InferenceGate, default_workers
 from service.config import Settings
 from service.index.pgvector_store import drop_atlas_tables
@@ -152,7 +152,7 @@ class AtlasService:
     # ----- queries -----------------------------------------------------------------------
 
     def query_filter(self, **fields: Any) -> QueryFilter:
-        """A validated filter (see :func:`service.atlas.filters.make_filter`)."""
+        """A validated filter (see :func:`service.app.filters.make_filter`)."""
         return make_filter(self.settings, **fields)
 
     def query(

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.browse import closure_row
-from service.atlas.ingest import FrameIngest
-from service.atlas.verify import CandidateVerification, frame_view
+from service.app.browse import closure_row
+from service.app.ingest import FrameIngest
+from service.app.verify import CandidateVerification, frame_view
 from service.errors import NotFound
 from service.ml.verification import RelativePose
 from service.storage import repository as repo

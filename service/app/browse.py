@@ -10,9 +10,9 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
-from service.atlas import thumbnails
-from service.atlas.names import validate_name
-from service.atlas.reads import FrameRecord
+from service.app import thumbnails
+from service.app.names import validate_name
+from service.app.reads import FrameRecord
 from service.errors import NotFound
 from service.storage import repository as repo
 from service.storage.feature_store import load_local_features

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 
-from service.atlas.results import Candidate, SequenceAnswer
-from service.atlas.sequences import Verdict
+from service.app.results import Candidate, SequenceAnswer
+from service.app.sequences import Verdict
 from service.ml.decision import CANDIDATE_PROBABILITY, Decision, Evidence
 from service.ml.sequences import PlaceStatus
 

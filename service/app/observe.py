@@ -6,10 +6,10 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
-from service.atlas.filters import QueryFilter
-from service.atlas.ingest import FrameFields, FrameIngest
-from service.atlas.results import QueryResult
-from service.atlas.sequences import RobotContext
+from service.app.filters import QueryFilter
+from service.app.ingest import FrameFields, FrameIngest
+from service.app.results import QueryResult
+from service.app.sequences import RobotContext
 from service.errors import InvalidInput
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics
@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 
 class Observations:
-    """The observe calls of :class:`~service.atlas.query.AtlasQueries` (which brings the
+    """The observe calls of :class:`~service.app.query.AtlasQueries` (which brings the
     search, the checks and the ingest)."""
 
     sessions: sessionmaker[Session]

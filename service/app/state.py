@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import change_feed
-from service.atlas import model_versions as models_store
-from service.atlas.broken_atlases import BrokenAtlases
+from service.app import change_feed
+from service.app import model_versions as models_store
+from service.app.broken_atlases import BrokenAtlases
 from service.config import Settings
 from service.errors import AtlasUnavailable, NotFound
 from service.index import AtlasIndex
@@ -42,7 +42,7 @@ class LoadedAtlas:
     heads: LoopNetHeads
     index: VectorStore
     dirty: bool = False
-    revision: int = 0  # the atlas revision the index reflects (see service/atlas/change_feed.py)
+    revision: int = 0  # the atlas revision the index reflects (see service/app/change_feed.py)
     calibration: Calibration | None = None
     min_inliers: tuple[str, int] | None = None  # (matcher, minimum) fitted by the calibration
 
@@ -276,7 +276,7 @@ class AtlasStates:
     def follow(self, revisions: dict[int, int], *, only: int | None = None) -> None:
         """Catch the loaded atlases up with the database (``revisions``: atlas id -> current).
 
-        Called by the :class:`~service.atlas.change_feed.ChangeFollower` thread: applies the
+        Called by the :class:`~service.app.change_feed.ChangeFollower` thread: applies the
         frames other processes added or removed, swaps in a newly activated model version, and
         forgets atlases deleted elsewhere. With pgvector only the activations matter: the
         frames are in the shared tables already. ``only``: that atlas alone.

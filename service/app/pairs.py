@@ -1,13 +1,13 @@
 """Revisit pairs as the API and the console use them: list, label, read and delete the pairs
-of an atlas, bound to the process's sessions (:mod:`service.atlas.revisit_pairs` does the
+of an atlas, bound to the process's sessions (:mod:`service.app.revisit_pairs` does the
 work)."""
 
 from __future__ import annotations
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import revisit_pairs
-from service.atlas.revisit_pairs import PairFilter, PairRow
+from service.app import revisit_pairs
+from service.app.revisit_pairs import PairFilter, PairRow
 
 
 class RevisitPairs:

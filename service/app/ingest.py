@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas import change_feed
-from service.atlas.milestones import calibration_due
-from service.atlas.names import validate_name
-from service.atlas.state import AtlasStates
+from service.app import change_feed
+from service.app.milestones import calibration_due
+from service.app.names import validate_name
+from service.app.state import AtlasStates
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.errors import Conflict, InvalidInput

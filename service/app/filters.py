@@ -16,7 +16,7 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.atlas.names import validate_name
+from service.app.names import validate_name
 from service.config import Settings
 from service.errors import InvalidInput
 from service.storage import repository as repo

@@ -7,8 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from service.atlas.sequences import SequenceScorer
-from service.atlas.state import LoadedAtlas
+from service.app.sequences import SequenceScorer
+from service.app.state import LoadedAtlas
 from service.ml.impostors import ImpostorModel, loop_score_threshold
 from tests.conftest import make_settings
 

@@ -15,7 +15,7 @@ and the newest passing answer is a loop only when the last ``consistency_frames`
 and point at one stretch of one trajectory.
 
 Everything is read from the database and the loaded index at the request's revision
-(:class:`~service.atlas.sequence_map.SequenceMaps` caches the map per process), so replicas and
+(:class:`~service.app.sequence_map.SequenceMaps` caches the map per process), so replicas and
 restarts answer alike.
 """
 
@@ -27,10 +27,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sqlalchemy.orm import Session
 
-from service.atlas.filters import Selection
-from service.atlas.results import SequenceAnswer
-from service.atlas.sequence_map import SequenceMap, SequenceMaps
-from service.atlas.state import LoadedAtlas
+from service.app.filters import Selection
+from service.app.results import SequenceAnswer
+from service.app.sequence_map import SequenceMap, SequenceMaps
+from service.app.state import LoadedAtlas
 from service.config import Settings
 from service.index import Hit
 from service.ml.impostors import loop_score_threshold

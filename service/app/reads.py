@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.change_feed import revisions
-from service.atlas.loop_closures import list_loop_closures
-from service.atlas.model_versions import VersionConfig
+from service.app.change_feed import revisions
+from service.app.loop_closures import list_loop_closures
+from service.app.model_versions import VersionConfig
 from service.domain.statuses import CalibrationState
 from service.errors import Conflict
 from service.ml.presets import FeatureSignature
@@ -21,7 +21,7 @@ from service.storage import repository as repo
 from service.storage.models import Atlas, Frame, LoopClosure, ModelVersion, Submap
 
 if TYPE_CHECKING:
-    from service.atlas.state import LoadedAtlas
+    from service.app.state import LoadedAtlas
 
 Sessions = sessionmaker[Session]
 

@@ -13,7 +13,7 @@ from datetime import datetime
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.atlas.results import QueryResult
+from service.app.results import QueryResult
 from service.storage.db import transaction
 from service.storage.models import Frame, LoopClosure, LoopClosureThumbnail, Submap
 

@@ -21,21 +21,19 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import correct_matrix, rank_by_similarity
 from service.evaluation.protocol import evaluate_ranking
 from service.evaluation.retraining_pass import (
-    MAP_ROBOT,
-    QUERY_ROBOT,
     RetrainingRow,
     StartingPoint,
     _rows,
     _scored,
     _subset,
     query_submaps,
+    shot_data,
 )
 from service.evaluation.service_pass import PassResult
 from service.ml.adaptation import adapt_heads
 from service.ml.heads import LoopNetHeads
 from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.pipeline import embed_vectors
-from service.ml.training import TrainingData, split_shots
 
 PROTOCOL = "revisit-adapt"
 
@@ -71,17 +69,7 @@ def adaptation_rows(
     active = LoopNetHeads(start.base).eval()
     rows: list[RetrainingRow] = []
     for k_shots in shots:
-        answerable = np.flatnonzero(revisited >= 0)
-        picked, _ = split_shots(revisited[answerable], k_shots)
-        query_shots = answerable[picked]
-        test = np.setdiff1d(np.arange(len(dataset.queries)), query_shots)
-        data = TrainingData(
-            local=np.concatenate([ref_local, query_local[query_shots]]),
-            global_=np.concatenate([ref_global, query_global[query_shots]]),
-            submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
-            frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
-            robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
-        )
+        query_shots, test, data = shot_data(start, ref_submaps, revisited, k_shots)
         pairs = np.stack([n_refs + np.arange(len(query_shots)), partners[query_shots]], axis=1)
         adapted = adapt_heads(
             data, pairs, active, config or PairWhiteningConfig(), min_pairs=2, window=2

@@ -193,6 +193,31 @@ def _scored(heads: LoopNetHeads, start: StartingPoint, ranking: Ranking) -> tupl
     return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
 
 
+def shot_data(
+    start: StartingPoint, ref_submaps: np.ndarray, revisited: np.ndarray, k_shots: int | None
+) -> tuple[np.ndarray, np.ndarray, TrainingData]:
+    """The query shots (``k_shots`` query-condition frames per revisited submap, as the revisit
+    protocol labels them; None: none, the map protocol), the test queries (every other one) and
+    the training data: the references with the query shots appended as a second robot."""
+    ref_local, ref_global = start.references
+    query_local, query_global = start.queries
+    n_refs = len(ref_submaps)
+    query_shots = np.zeros(0, dtype=np.int64)
+    if k_shots is not None:
+        answerable = np.flatnonzero(revisited >= 0)
+        picked, _ = split_shots(revisited[answerable], k_shots)
+        query_shots = answerable[picked]
+    test = np.setdiff1d(np.arange(len(revisited)), query_shots)
+    data = TrainingData(
+        local=np.concatenate([ref_local, query_local[query_shots]]),
+        global_=np.concatenate([ref_global, query_global[query_shots]]),
+        submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
+        frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
+        robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
+    )
+    return query_shots, test, data
+
+
 def retraining_rows(
     dataset: Dataset,
     submap_of: Sequence[int],
@@ -229,19 +254,8 @@ def retraining_rows(
     rows: list[RetrainingRow] = []
     for protocol in protocols:
         for k_shots in shots:
-            if protocol == "map":
-                query_shots = np.zeros(0, dtype=np.int64)
-            else:
-                answerable = np.flatnonzero(revisited >= 0)
-                picked, _ = split_shots(revisited[answerable], k_shots)
-                query_shots = answerable[picked]
-            test = np.setdiff1d(np.arange(len(dataset.queries)), query_shots)
-            data = TrainingData(
-                local=np.concatenate([ref_local, query_local[query_shots]]),
-                global_=np.concatenate([ref_global, query_global[query_shots]]),
-                submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
-                frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
-                robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
+            query_shots, test, data = shot_data(
+                start, ref_submaps, revisited, None if protocol == "map" else k_shots
             )
             config = TrainingConfig(**{**(params or {}), "shots": k_shots})
             # the map's frames split as the job splits an atlas's; revisit shots all train

@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from service.ml.heads import LoopNetHeads
+from service.ml.calibration_config import ImpostorProbe
+from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import HELD_OUT_SHARE, compare_on_held_out, split_for_job
 from service.ml.pair_whitening import (
     PairWhitening,
@@ -28,6 +29,7 @@ from service.ml.pair_whitening import (
     fused_inputs,
 )
 from service.ml.pipeline import embed_vectors
+from service.ml.retrained_impostors import ProbeRefit
 from service.ml.training import TrainingData
 
 HELD_OUT_BLOCKS = 10  # pairs are cut into this many blocks in order; held out: every 5th
@@ -41,10 +43,32 @@ class NoUsefulPairs(ValueError):
 
 @dataclass
 class AdaptationResult:
+    """The adapted heads, the whitening folded into them, the gate's verdict and figures, and
+    ``impostor_refit``: the same fit without an impostor probe's held-out frames, which the
+    version's impostor model is refitted with (its score must not call a query's impostors
+    rarer than they are)."""
+
     heads: LoopNetHeads
     whitening: PairWhitening
     gate: dict[str, Any]
     metrics: dict[str, Any]
+    impostor_refit: ProbeRefit
+
+
+def probe_refit(
+    base: HeadsConfig, differences: np.ndarray, config: PairWhiteningConfig
+) -> ProbeRefit:
+    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``),
+    on the probe's frames but those it held out: the learned whitening decorrelates the
+    atlas's frames, so with them in the fit the probe's held-out frames would look as
+    orthogonal as stored ones, and wrong matches would score as rarer than they are."""
+
+    def refit(probe: ImpostorProbe) -> LoopNetHeads:
+        inputs = fused_inputs(base, probe.local_branch, probe.global_branch)
+        seen = inputs if probe.held is None else inputs[~probe.held]
+        return fold_into_heads(base, PairWhitening.fit_differences(seen, differences, config))
+
+    return refit
 
 
 def split_pairs(count: int, share: float = HELD_OUT_SHARE) -> tuple[np.ndarray, np.ndarray]:
@@ -158,4 +182,5 @@ def adapt_heads(
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
-    return AdaptationResult(heads, whitening, gate, metrics)
+    differences = inputs[train[:, 0]] - inputs[train[:, 1]]
+    return AdaptationResult(heads, whitening, gate, metrics, probe_refit(base, differences, config))

@@ -9,8 +9,9 @@ queries are answered through the service before and after it at the defaults (ve
 calibrated score, loop decision): :func:`served_answers`. So the before -> after rows are the
 decision the service serves, not a threshold swept over a cosine.
 
-A test query may be answered with a shot frame (a frame of the query condition at its place):
-it counts as that shot's partner reference, the frame the pair names.
+The test queries search the references only (the shots are the revisiting robot's frames:
+answered by one of them, a query of the same condition a frame away, every query would be
+right before any adaptation).
 """
 
 from __future__ import annotations
@@ -82,9 +83,17 @@ def adapt_as_served(
         answers_as[frame.id] = partner
         pairs.label(atlas, frame.id, reference_frame[partner])
     asked = [queries[i] for i in test]
-    before = served_answers(service, asked, answers_as, k, atlas, extractor)
+    # the test queries search the map's frames only, as the harness's other adapted rows
+    # rank the references: answered by a shot (a frame of their own condition a frame or
+    # two away) every query would be right before any adaptation
+    references_only = service.query_filter(robot_id=SHOT_ROBOT, robots="others")
+    before = served_answers(
+        service, asked, answers_as, k, atlas, extractor, query_filter=references_only
+    )
     job = run_job("adapt", params or {})
-    after = served_answers(service, asked, answers_as, k, atlas, extractor)
+    after = served_answers(
+        service, asked, answers_as, k, atlas, extractor, query_filter=references_only
+    )
     return ServedAdaptation(k_shots, shots, test, before, after, job)
 
 

@@ -9,9 +9,9 @@ queries are answered through the service before and after it at the defaults (ve
 calibrated score, loop decision): :func:`served_answers`. So the before -> after rows are the
 decision the service serves, not a threshold swept over a cosine.
 
-The test queries search the references only (the shots are the revisiting robot's frames:
-answered by one of them, a query of the same condition a frame away, every query would be
-right before any adaptation).
+The test queries are asked anonymously of the same atlas content before and after: the
+references only (the shots leave the atlas once the job has run; answered by a shot, a frame
+of their own condition a frame away, every query would be right before any adaptation).
 """
 
 from __future__ import annotations
@@ -70,30 +70,23 @@ def adapt_as_served(
     """Add the shots and their pairs, answer the test queries, run an ``adapt`` job through
     ``run_job(kind, params) -> dict`` (the service pass's job runner), answer them again."""
     shots, test = revisit_shots(revisited, k_shots)
+    asked = [queries[i] for i in test]
+    before = served_answers(service, asked, frame_to_reference, k, atlas, extractor)
     reference_frame = {ref: frame for frame, ref in frame_to_reference.items()}
-    answers_as = dict(frame_to_reference)
     pairs = RevisitPairs(service.sessions)
+    shot_frames = []
     for order, q in enumerate(shots):
-        partner = int(partners[q])
         frame = service.ingest_features(
             atlas_name=atlas,
             fields=FrameFields(submap_names[int(revisited[q])], SHOT_ROBOT, timestamp=float(order)),
             features=queries[q],
         )
-        answers_as[frame.id] = partner
-        pairs.label(atlas, frame.id, reference_frame[partner])
-    asked = [queries[i] for i in test]
-    # the test queries search the map's frames only, as the harness's other adapted rows
-    # rank the references: answered by a shot (a frame of their own condition a frame or
-    # two away) every query would be right before any adaptation
-    references_only = service.query_filter(robot_id=SHOT_ROBOT, robots="others")
-    before = served_answers(
-        service, asked, answers_as, k, atlas, extractor, query_filter=references_only
-    )
+        shot_frames.append(frame.id)
+        pairs.label(atlas, frame.id, reference_frame[int(partners[q])])
     job = run_job("adapt", params or {})
-    after = served_answers(
-        service, asked, answers_as, k, atlas, extractor, query_filter=references_only
-    )
+    for frame_id in shot_frames:
+        service.delete_frame(atlas, frame_id)
+    after = served_answers(service, asked, frame_to_reference, k, atlas, extractor)
     return ServedAdaptation(k_shots, shots, test, before, after, job)
 
 

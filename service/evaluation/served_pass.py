@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 
 from service.app.catalog import AtlasService
-from service.app.filters import QueryFilter
 from service.app.ingest import FrameFields
 from service.app.results import QueryResult
 from service.app.verify import CandidateVerification, verification_config
@@ -66,7 +65,6 @@ def served_answers(
     atlas: str,
     extractor: str,
     sequence_length: int = 0,
-    query_filter: QueryFilter | None = None,
 ) -> ServedAnswers:
     """Ask every query through the service with the default verification switched on.
 
@@ -74,7 +72,6 @@ def served_answers(
     robot's observations (``POST /observe``, one second apart, asking about the other robots'
     frames only, so the references): each is answered with its sequence of that length and
     consistency, then joins the atlas; call it last, after every anonymous pass.
-    ``query_filter``: which frames anonymous queries search (None: all of the atlas).
     """
     defaults = Settings(data_dir=service.settings.data_dir)
     settings = service.settings.model_copy(
@@ -105,9 +102,7 @@ def served_answers(
                     sequence_length=sequence_length,
                 )
             else:
-                answer = service.query_features(
-                    atlas_name=atlas, features=features, k=k, query_filter=query_filter
-                )
+                answer = service.query_features(atlas_name=atlas, features=features, k=k)
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)

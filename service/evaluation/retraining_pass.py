@@ -199,17 +199,6 @@ def _scored(
     return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
 
 
-def revisit_shots(revisited: np.ndarray, k_shots: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """The revisit protocol's query shots (``k_shots`` query-condition frames per revisited
-    submap, by :func:`split_shots`; None: none) and the test queries (every other query)."""
-    query_shots = np.zeros(0, dtype=np.int64)
-    if k_shots is not None:
-        answerable = np.flatnonzero(revisited >= 0)
-        picked, _ = split_shots(revisited[answerable], k_shots)
-        query_shots = answerable[picked]
-    return query_shots, np.setdiff1d(np.arange(len(revisited)), query_shots)
-
-
 def shot_data(
     start: StartingPoint, ref_submaps: np.ndarray, revisited: np.ndarray, k_shots: int | None
 ) -> tuple[np.ndarray, np.ndarray, TrainingData]:
@@ -219,7 +208,12 @@ def shot_data(
     ref_local, ref_global = start.references
     query_local, query_global = start.queries
     n_refs = len(ref_submaps)
-    query_shots, test = revisit_shots(revisited, k_shots)
+    query_shots = np.zeros(0, dtype=np.int64)
+    if k_shots is not None:
+        answerable = np.flatnonzero(revisited >= 0)
+        picked, _ = split_shots(revisited[answerable], k_shots)
+        query_shots = answerable[picked]
+    test = np.setdiff1d(np.arange(len(revisited)), query_shots)
     data = TrainingData(
         local=np.concatenate([ref_local, query_local[query_shots]]),
         global_=np.concatenate([ref_global, query_global[query_shots]]),

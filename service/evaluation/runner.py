@@ -57,7 +57,6 @@ from service.evaluation.retraining_pass import (
     retraining_rows,
 )
 from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
-from service.evaluation.served_adaptation import served_adaptation_rows_for
 from service.evaluation.served_pass import served_method
 from service.evaluation.service_pass import PassResult, run_service_pass
 from service.evaluation.verification_pass import (
@@ -490,7 +489,6 @@ class EvalRun:
     skipped: dict[str, str] = field(default_factory=dict)
     passes: list[PassResult] = field(default_factory=list)
     first_keypoints: KeypointCache | None = None
-    first_pipeline: FeaturePipeline | None = None
     calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     calibrated_branches: dict[str, CalibratedBranches] = field(default_factory=dict)
     retraining: list[RetrainingRow] = field(default_factory=list)
@@ -606,7 +604,13 @@ def run_passes(run: EvalRun) -> None:
             cache_dir=data.cache_dir,
             label=extractor,
             on_features=keypoints.store if keypoints is not None else None,
-            calibration=_calibration_params() if calibrates else None,
+            calibration={
+                "aggregator": DEFAULT_CALIBRATION.aggregator,
+                "words": DEFAULT_CALIBRATION.words,
+                "alpha": DEFAULT_CALIBRATION.alpha,
+            }
+            if calibrates
+            else None,
             serve=config.served,
             serve_sequence=max(config.sequence, default=0),
         )
@@ -644,21 +648,11 @@ def run_passes(run: EvalRun) -> None:
         run.passes.append(result)
         if first:
             run.first_keypoints = keypoints
-            run.first_pipeline = pipeline
         run.checkpoint("the next extractor's pass")
     if not run.passes:
         raise RuntimeError(f"no local extractor could run: {run.skipped}")
     run.methods += run.global_only
     run.global_only = []
-
-
-def _calibration_params() -> dict[str, object]:
-    """The calibration job's parameters the passes calibrate with: the service's defaults."""
-    return {
-        "aggregator": DEFAULT_CALIBRATION.aggregator,
-        "words": DEFAULT_CALIBRATION.words,
-        "alpha": DEFAULT_CALIBRATION.alpha,
-    }
 
 
 def run_ablations(run: EvalRun) -> None:
@@ -678,20 +672,6 @@ def run_ablations(run: EvalRun) -> None:
             run.methods,
         )
         run.methods += [row.after for row in run.retraining if row.protocol == ADAPT_PROTOCOL]
-        run.checkpoint("the adaptation as served")
-        if config.served and run.first_pipeline is not None and run.calibrated_branches:
-            served = served_adaptation_rows_for(
-                run.data.dataset,
-                run.data.submap_of,
-                run.first_pipeline,
-                shots=config.adapt_shots,
-                k=config.k,
-                cache_dir=run.data.cache_dir,
-                calibration=_calibration_params(),
-                label=f"LoopNet {EXTRACTOR_LABELS.get(run.first_pass.preset.local.name, '')}",
-            )
-            run.retraining += served
-            run.methods += [row.after for row in served]
         run.checkpoint("verification and baselines")
     if config.verify and run.first_keypoints is not None:
         _verification_step(run, run.first_keypoints)

@@ -16,7 +16,6 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -41,8 +40,6 @@ from service.storage.db import transaction
 from service.storage.feature_store import load_calibration_inputs
 
 ATLAS = "evaluation"
-# called last on a pass's calibrated atlas: the service, the queries' features, frame -> reference
-PassHook = Callable[[AtlasService, list[FrameFeatures], dict[int, int]], Any]
 ROBOT = "reference"
 EXTRACTION_STAGES = ("decode", "local_features", "global_features")
 
@@ -79,7 +76,6 @@ class PassResult:
     calibrated: CalibratedAnswers | None = None
     served: ServedAnswers | None = None
     served_sequence: ServedAnswers | None = None
-    then: Any = None
 
 
 @dataclass
@@ -283,7 +279,6 @@ def run_service_pass(
     calibration: dict[str, object] | None = None,
     serve: bool = False,
     serve_sequence: int = 0,
-    then: PassHook | None = None,
 ) -> PassResult:
     """Ingest the references into a temporary atlas, query every query image, keep the vectors.
 
@@ -293,8 +288,6 @@ def run_service_pass(
     ``serve``, every query is then asked once more as the service serves it (verification and
     the loop decision at the defaults: :mod:`service.evaluation.served_pass`), and with
     ``serve_sequence`` L once more as one robot's observations with sequences of length L.
-    ``then``: called last on the calibrated atlas (service, queries' features, frame id ->
-    reference), its value kept as ``PassResult.then`` (the served adaptation).
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None else None
@@ -401,7 +394,6 @@ def run_service_pass(
             if serve and serve_sequence and query_features
             else None
         )
-        after = then(service, query_features, frame_to_reference) if then is not None else None
         threshold = settings.loop_closure_threshold
         runtime.stop()
 
@@ -437,7 +429,6 @@ def run_service_pass(
         calibrated=calibrated,
         served=served,
         served_sequence=served_sequence,
-        then=after,
     )
 
 
@@ -450,7 +441,16 @@ def _calibrated_answers(
 ) -> CalibratedAnswers:
     """Calibrate the atlas as the service does (a calibration job run by the job runner on the
     stored references), then ask every query again through the service."""
-    metrics = run_job(service, "calibrate", params)["metrics"]
+    with transaction(service.sessions) as session:
+        atlas_id = repo.get_atlas(session, name=ATLAS).id
+        job_id = jobs.create_job(session, atlas_id=atlas_id, kind="calibrate", params=params).id
+    JobRunner(service.settings, service.sessions).run(job_id)
+    with service.sessions() as session:
+        job = jobs.get_job(session, job_id=job_id)
+        if job.status != "succeeded":
+            raise RuntimeError(f"the calibration job failed: {job.error}")
+        metrics = dict(job.metrics)
+    service.catch_up()
     indices, scores, cosines, query_ms = [], [], [], []
     for features in queries:
         # descriptors rounded as the feature cache holds them: a rerun answers the same
@@ -468,28 +468,6 @@ def _calibrated_answers(
         np.array(query_ms, np.float64),
         metrics,
     )
-
-
-def run_job(service: AtlasService, kind: str, params: dict[str, object]) -> dict[str, Any]:
-    """Run a job of ``kind`` on the evaluation atlas as a worker runs it (the job runner), and
-    catch the service up with what it published; its status, message and metrics. A failed
-    job raises (a refused one, ``refused: ...``, is an answer)."""
-    with transaction(service.sessions) as session:
-        atlas_id = repo.get_atlas(session, name=ATLAS).id
-        job_id = jobs.create_job(session, atlas_id=atlas_id, kind=kind, params=params).id
-    JobRunner(service.settings, service.sessions).run(job_id)
-    with service.sessions() as session:
-        job = jobs.get_job(session, job_id=job_id)
-        outcome = {
-            "status": job.status,
-            "message": job.message,
-            "error": job.error,
-            "metrics": dict(job.metrics or {}),
-        }
-    if outcome["status"] != "succeeded" and not str(job.error or "").startswith("refused"):
-        raise RuntimeError(f"the {kind} job failed: {job.error}")
-    service.catch_up()
-    return outcome
 
 
 def _as_stored(local: LocalFeatures) -> LocalFeatures:

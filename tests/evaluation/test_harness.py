@@ -209,29 +209,3 @@ def test_loopnet_eval_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     ]
     retrained = next(m for m in report["methods"] if m["name"] == "retrained-map-k1")
     assert retrained["details"]["training_config"]["positive_window"] == 0  # --retrain-param
-
-
-@pytest.mark.slow
-def test_adapted_rows_as_served_run_the_adapt_job_and_answer_through_the_service(slice_run) -> None:  # type: ignore[no-untyped-def]
-    config, first = slice_run
-    result = rerun_from_cache(config, "adapted", adapt_shots=(1, 3))
-    served = {r.shots: r for r in result.retraining if r.protocol == "revisit-adapt-served"}
-    assert sorted(served) == [1, 3]
-    queries = len(first.methods[0].ranking.indices)
-    submaps = PLACES // config.submap_size
-    for shots, row in served.items():
-        # K query-condition frames per submap joined the atlas as labelled pairs; the rest ask
-        assert row.test_queries == queries - shots * submaps
-        for method in (row.before, row.after):
-            assert method.kind == "served" and len(method.ranking.indices) == row.test_queries
-            point = method.details["operating_point"]
-            assert point["false_loops"] >= 0 and 0.0 <= point["recall"] <= 1.0
-    # 4 pairs are fewer than a job's minimum (10): refused with its reason, nothing changed
-    refused = served[1]
-    assert refused.gate["activated"] is False and "refused: only" in refused.gate["job"]
-    assert refused.after.ranking.indices.tolist() == refused.before.ranking.indices.tolist()
-    # 12 pairs: the job ran its gate on held-out pairs and says what it did in one line
-    ran = served[3]
-    assert "model version" in ran.gate["job"] and ran.gate["pairs"] >= 1
-    report = json.loads((config.output / "adapted" / "report.json").read_text())
-    assert "served-adapted-k3" in [m["name"] for m in report["methods"]]

@@ -7,11 +7,11 @@ verification and decision), by a second robot asking about the map's frames, int
 pass's calibrated atlas. Every verified closure ``observe`` records is a revisit pair, right or
 wrong; the ground truth only counts how many were right. A real ``adapt`` job (job runner, the
 job's default parameters) learns from them and its gate decides. The remaining queries are
-answered as served before (the pass's served answers) and after, over the map's frames only:
-``after`` with the job's version (activated for the measurement when the gate kept it back),
-``served`` with whichever version the gate left active. The atlas is put back afterwards (the
-observed frames and their pairs deleted, the starting version active), so each K starts from
-the same atlas and the later passes see none of it.
+answered as served, anonymously, before (the pass's served answers) and after, once the
+observed frames are deleted again (so over the map's frames only, as before): ``after`` with
+the job's version (activated for the measurement when the gate kept it back), ``served`` with
+whichever version the gate left active. The atlas is then put back (the starting version
+active), so each K starts from the same atlas and the later passes see none of it.
 """
 
 from __future__ import annotations
@@ -139,24 +139,21 @@ def observed_pairs_runs(
             ).reshape(-1, 2)
             right = np.array([ref in dataset.queries[q].positives for q, ref in pairs], dtype=bool)
             job = _adapt(service, atlas_id)
+            # the test queries ask as before, anonymously, the map's frames only: the observed
+            # frames go once the job has learned from them (an asking robot would also bring
+            # its own trajectory into the decision)
+            _delete(service, atlas, submaps)
             after = None
             if job["version"] is not None:
                 if not job["activated"]:  # measured with the job's version all the same
                     service.activate_version(atlas, job["version"])
                 service.catch_up()
                 after = served_answers(
-                    service,
-                    [queries[q] for q in test],
-                    frame_to_reference,
-                    k,
-                    atlas,
-                    extractor,
-                    query_filter=service.query_filter(robot_id=REVISIT_ROBOT, robots="others"),
+                    service, [queries[q] for q in test], frame_to_reference, k, atlas, extractor
                 )
         finally:  # the atlas as it was: the starting version, no observed frame or pair
             service.activate_version(atlas, starting_version)
-            for submap in submaps:
-                service.delete_submap(atlas, submap)
+            _delete(service, atlas, submaps)
             service.catch_up()
         runs.append(
             ObservedPairs(
@@ -172,6 +169,16 @@ def observed_pairs_runs(
             )
         )
     return runs
+
+
+def _delete(service: AtlasService, atlas: str, submaps: list[str]) -> None:
+    """The observed frames' submaps with their frames and pairs (those still there)."""
+    with service.sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        there = {s.name for s, _ in repo.list_submaps_with_counts(session, atlas=found)}
+    for submap in submaps:
+        if submap in there:
+            service.delete_submap(atlas, submap)
 
 
 def _adapt(service: AtlasService, atlas_id: int) -> dict[str, Any]:

@@ -243,8 +243,8 @@ def observed_pairs_rows(
 
 
 def _figures(method: MethodResult) -> dict[str, float]:
-    """R@1, R@100%P and the wrong best matches' median score (the calibrated score the
-    decision reads; NaN where no wrong answer had one)."""
+    """R@1, R@100%P and the wrong best answers' median score excess (the decision's score
+    part: calibrated score - log10 of the atlas's frames; NaN where no wrong answer had one)."""
     parts = np.asarray(method.details["per_query_parts"], np.float64).reshape(-1, len(PARTS))
     right = np.asarray(method.details["per_query_right"], bool)
     wrong_scores = parts[~right, PARTS.index("score")]

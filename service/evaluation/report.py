@@ -120,7 +120,7 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = [
         "| K | observed (answers) | pairs recorded (right) | adapt job | test queries "
         "| R@1 before → after (served) | R@100%P before → after (served) "
-        "| wrong-match score median before → after (served) |",
+        "| wrong-match score excess median before → after (served) |",
         "|" + " --- |" * 8,
     ]
 
@@ -144,8 +144,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "(right: its frame is a right reference by the ground truth); a real adapt job with its "
         "default parameters learns from them and its gate decides. Test queries = the other "
         "queries, over the map's frames. After = the job's version (measured even when the gate "
-        "kept it back); served = the version the gate left active. Wrong-match score: the "
-        "calibrated score of wrong best answers.",
+        "kept it back); served = the version the gate left active. Wrong-match score excess: "
+        "the decision's score part of wrong best answers (calibrated score - log10 of the "
+        "atlas's frames, clipped to [-4, 8]), median.",
     ]
     return "\n".join(lines)
 

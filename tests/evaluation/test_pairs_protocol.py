@@ -21,7 +21,7 @@ from service.evaluation.pairs_pass import (
 )
 from service.evaluation.protocol import assign_submaps
 from service.evaluation.runner import EvalConfig, run_evaluation
-from service.evaluation.served_pass import ServedAnswers
+from service.evaluation.served_pass import PARTS, ServedAnswers
 from service.evaluation.service_pass import ATLAS, run_service_pass
 from service.ml.features import FrameFeatures
 from service.storage import repository as repo
@@ -108,6 +108,8 @@ def test_observe_records_the_pairs_and_a_real_job_learns_from_them(protocol_run)
     assert many.job["status"] == "succeeded" and many.job["version"] is not None
     assert many.job["message"].startswith(f"model version {many.job['version']} ")
     assert many.after is not None and len(many.after.ranking.indices) == len(many.test)
+    # asked anonymously, as before: no robot's sequence enters the decision
+    assert np.isnan(many.after.parts[:, PARTS.index("sequence")]).all()
     assert (many.served is many.after) == many.activated
     assert few.job["status"] == "failed" and "usable revisit pair" in few.job["message"]
     assert few.after is None and few.served is few.before

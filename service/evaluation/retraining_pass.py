@@ -199,6 +199,14 @@ def _scored(
     return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
 
 
+def revisit_shots(revisited: np.ndarray, k_shots: int) -> np.ndarray:
+    """``k_shots`` query-condition frames per revisited submap (``revisited``: each query's
+    submap, -1 when unanswerable), as the revisit protocols pick them: query indices."""
+    answerable = np.flatnonzero(revisited >= 0)
+    picked, _ = split_shots(revisited[answerable], k_shots)
+    return np.asarray(answerable[picked], dtype=np.int64)
+
+
 def shot_data(
     start: StartingPoint, ref_submaps: np.ndarray, revisited: np.ndarray, k_shots: int | None
 ) -> tuple[np.ndarray, np.ndarray, TrainingData]:
@@ -208,11 +216,9 @@ def shot_data(
     ref_local, ref_global = start.references
     query_local, query_global = start.queries
     n_refs = len(ref_submaps)
-    query_shots = np.zeros(0, dtype=np.int64)
-    if k_shots is not None:
-        answerable = np.flatnonzero(revisited >= 0)
-        picked, _ = split_shots(revisited[answerable], k_shots)
-        query_shots = answerable[picked]
+    query_shots = (
+        np.zeros(0, dtype=np.int64) if k_shots is None else revisit_shots(revisited, k_shots)
+    )
     test = np.setdiff1d(np.arange(len(revisited)), query_shots)
     data = TrainingData(
         local=np.concatenate([ref_local, query_local[query_shots]]),

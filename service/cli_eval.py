@@ -101,6 +101,13 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "the other queries answered as served before and after; '' for none",
     )
     ev.add_argument(
+        "--adapt-pairs-labelled",
+        default="",
+        metavar="K[,K...]",
+        help="the same with the K shots per submap stored and labelled as pairs with their "
+        "partner references (the revisit protocol as served); '' for none",
+    )
+    ev.add_argument(
         "--adapt-shrinkage",
         type=float,
         help="the adapt job's shrinkage of the pairs' covariance (default: Ledoit-Wolf's)",
@@ -251,6 +258,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         adapt_shots=_csv_list(int, args.adapt_shots),
         adapt_shrinkage=args.adapt_shrinkage,
         adapt_observe_shots=_csv_list(int, args.adapt_pairs_from_observe),
+        adapt_labelled_shots=_csv_list(int, args.adapt_pairs_labelled),
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         ransac_backend=settings.ransac_backend,

@@ -12,6 +12,11 @@ observed frames are deleted again (so over the map's frames only, as before): ``
 the job's version (activated for the measurement when the gate kept it back), ``served`` with
 whichever version the gate left active. The atlas is then put back (the starting version
 active), so each K starts from the same atlas and the later passes see none of it.
+
+With the source ``labelled`` the same run measures the revisit protocol *as served*: the
+shots are stored and each is labelled as a pair with its partner reference (the ground-truth
+pairs :mod:`service.evaluation.adaptation_pass` hands to ``adapt_heads``, here through the
+pairs use case, the job runner and the served decision).
 """
 
 from __future__ import annotations
@@ -25,8 +30,10 @@ import numpy as np
 
 from service.app.catalog import AtlasService
 from service.app.ingest import FrameFields
+from service.app.pairs import RevisitPairs
 from service.app.revisit_pairs import pair_frames
 from service.domain.pairs import PairFilter
+from service.evaluation.adaptation_pass import partner_of
 from service.evaluation.datasets import Dataset
 from service.evaluation.protocol import MethodResult
 from service.evaluation.retraining_pass import _subset, query_submaps, revisit_shots
@@ -46,6 +53,9 @@ from service.storage.db import transaction
 
 PROTOCOL = "pairs-observe"
 REVISIT_ROBOT = "revisits"
+# where the pairs come from: what observe verified, or each shot labelled with its partner
+# reference (the revisit protocol's ground-truth pairs, as an operator labels them)
+SOURCES = ("observe", "labelled")
 
 
 @dataclass
@@ -53,7 +63,8 @@ class ObservedPairs:
     """One K: what ``observe`` recorded, what the job made of it, the answers before and after.
 
     Attributes:
-        observed: query indices observed (K per revisited submap).
+        source: where the pairs came from (:data:`SOURCES`).
+        observed: query indices observed or labelled (K per revisited submap).
         test: the other query indices, the test queries.
         statuses: the observations' answers by status (``loop``, ``new_place``, ...).
         pairs: ``P x 2`` (query index, reference index) of the pairs observe recorded.
@@ -64,6 +75,7 @@ class ObservedPairs:
     """
 
     shots: int
+    source: str
     observed: np.ndarray
     test: np.ndarray
     statuses: dict[str, int]
@@ -95,11 +107,17 @@ def observed_pairs_runs(
     before: ServedAnswers,
     k: int,
     shots: Sequence[int],
+    source: str = "observe",
 ) -> list[ObservedPairs]:
     """One run of the protocol per K, each from the atlas as it was (``before``: the pass's
-    served answers to every query on it)."""
+    served answers to every query on it). ``source`` "labelled": the shots are stored and
+    each is labelled as a pair with its partner reference instead of being observed."""
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
     extractor = service.pipeline.preset.local.name
     revisited = query_submaps(dataset, submap_of)
+    partners = partner_of(dataset)
+    reference_frame = {ref: frame for frame, ref in frame_to_reference.items()}
     runs = []
     for k_shots in shots:
         observed = revisit_shots(revisited, k_shots)
@@ -112,6 +130,7 @@ def observed_pairs_runs(
         for submap in submaps:
             service.create_submap(atlas, submap)
         query_of: dict[int, int] = {}
+        labels = RevisitPairs(service.sessions)
         statuses: Counter[str] = Counter()
         try:
             with served_settings(service, extractor):
@@ -119,6 +138,14 @@ def observed_pairs_runs(
                     fields = FrameFields(
                         f"revisit-{int(revisited[q]):05d}", REVISIT_ROBOT, timestamp=float(q)
                     )
+                    if source == "labelled":
+                        frame = service.ingest_features(
+                            atlas_name=atlas, fields=fields, features=queries[q]
+                        )
+                        query_of[frame.id] = int(q)
+                        statuses["labelled"] += 1
+                        labels.label(atlas, frame.id, reference_frame[int(partners[q])])
+                        continue
                     answer, frame = service.observe_features(
                         atlas_name=atlas,
                         fields=fields,
@@ -158,6 +185,7 @@ def observed_pairs_runs(
         runs.append(
             ObservedPairs(
                 k_shots,
+                source,
                 observed,
                 test,
                 dict(statuses),
@@ -204,7 +232,9 @@ def observed_pairs_rows(
 ) -> tuple[list[MethodResult], dict[str, Any]]:
     """The run's served rows on the test queries (before, after, served) and its report row."""
     subset = _subset(dataset, run.test)
-    name = f"{PROTOCOL}-k{run.shots}"
+    protocol = f"pairs-{run.source}"
+    name = f"{protocol}-k{run.shots}"
+    origin = "observe verified" if run.source == "observe" else "labelled from ground truth"
     methods = {
         "before": served_method(
             f"{name}-before",
@@ -217,14 +247,14 @@ def observed_pairs_rows(
     if run.after is not None:
         methods["after"] = served_method(
             f"{name}-after",
-            f"{label} adapted from {len(run.pairs)} pairs observe verified ({run.shots}/submap)",
+            f"{label} adapted from {len(run.pairs)} pairs {origin} ({run.shots}/submap)",
             run.after,
             subset,
             submap_of,
         )
     served = methods["after"] if run.activated and "after" in methods else methods["before"]
     row = {
-        "protocol": PROTOCOL,
+        "protocol": protocol,
         "shots": run.shots,
         "observed": len(run.observed),
         "statuses": run.statuses,
@@ -256,4 +286,4 @@ def _figures(method: MethodResult) -> dict[str, float]:
     }
 
 
-__all__ = ["PROTOCOL", "ObservedPairs", "observed_pairs_rows", "observed_pairs_runs"]
+__all__ = ["PROTOCOL", "SOURCES", "ObservedPairs", "observed_pairs_rows", "observed_pairs_runs"]

@@ -118,10 +118,10 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
     """The pairs protocol (``pairs_pass``): per K, what observe recorded, the adapt job's
     verdict, and the test queries as served before -> after (the served version in brackets)."""
     lines = [
-        "| K | observed (answers) | pairs recorded (right) | adapt job | test queries "
+        "| pairs from | K | observed (answers) | pairs recorded (right) | adapt job | test queries "
         "| R@1 before → after (served) | R@100%P before → after (served) "
         "| wrong-match score excess median before → after (served) |",
-        "|" + " --- |" * 8,
+        "|" + " --- |" * 9,
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
@@ -132,7 +132,8 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         statuses = ", ".join(f"{n} {status}" for status, n in sorted(row["statuses"].items()))
         job = row["job"]
         lines.append(
-            f"| {row['shots']} | {row['observed']} ({statuses}) "
+            f"| {row['protocol'].removeprefix('pairs-')} | {row['shots']} "
+            f"| {row['observed']} ({statuses}) "
             f"| {row['pairs']} ({row['pairs_right']}) | {job['status']}: {job['message']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} "
             f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} |"
@@ -146,7 +147,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "queries, over the map's frames. After = the job's version (measured even when the gate "
         "kept it back); served = the version the gate left active. Wrong-match score excess: "
         "the decision's score part of wrong best answers (calibrated score - log10 of the "
-        "atlas's frames, clipped to [-4, 8]), median.",
+        "atlas's frames, clipped to [-4, 8]), median. Pairs from `labelled`: the frames are "
+        "stored instead and each labelled as a pair with its partner reference (the revisit "
+        "protocol as served).",
     ]
     return "\n".join(lines)
 
@@ -201,7 +204,7 @@ def write_markdown(report: dict[str, Any], methods: Sequence[MethodResult], path
         ),
         *(
             [
-                "## Adaptation from the pairs observe verified",
+                "## Adaptation from revisit pairs, as served",
                 "",
                 observed_pairs_table(report["observed_pairs"]),
                 "",

@@ -122,6 +122,8 @@ class EvalConfig:
         adapt_observe_shots: K values of the pairs protocol (``pairs_pass``: the pairs the
             service's own observe verified, a real adapt job, served before -> after); needs
             ``served``.
+        adapt_labelled_shots: the same with the shots labelled as pairs with their partner
+            references (the revisit protocol as served).
     """
 
     dataset: Path
@@ -149,6 +151,7 @@ class EvalConfig:
     adapt_shots: tuple[int, ...] = ()
     adapt_shrinkage: float | None = None
     adapt_observe_shots: tuple[int, ...] = ()
+    adapt_labelled_shots: tuple[int, ...] = ()
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5
@@ -695,7 +698,7 @@ def run_ablations(run: EvalRun) -> None:
             run.methods += rows
             run.observed_pairs.append(report_row)
         run.checkpoint("verification and baselines")
-    elif config.adapt_observe_shots:
+    elif config.adapt_observe_shots or config.adapt_labelled_shots:
         run.skipped["pairs protocol"] = "needs the served pass (--served) and queries"
     if config.verify and run.first_keypoints is not None:
         _verification_step(run, run.first_keypoints)
@@ -739,7 +742,7 @@ def _retraining_step(run: EvalRun) -> None:
 
 def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None:
     """The pairs protocol on the first pass's atlas (:mod:`pairs_pass`), when asked for."""
-    if not config.adapt_observe_shots:
+    if not config.adapt_observe_shots and not config.adapt_labelled_shots:
         return None
 
     def run(
@@ -748,8 +751,13 @@ def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None
         frame_to_reference: dict[int, int],
         served: ServedAnswers,
     ) -> list[Any]:
-        return list(
-            observed_pairs_runs(
+        return [
+            run
+            for source, shots in (
+                ("observe", config.adapt_observe_shots),
+                ("labelled", config.adapt_labelled_shots),
+            )
+            for run in observed_pairs_runs(
                 service,
                 atlas=SERVICE_ATLAS,
                 dataset=data.dataset,
@@ -758,9 +766,10 @@ def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None
                 frame_to_reference=frame_to_reference,
                 before=served,
                 k=config.k,
-                shots=config.adapt_observe_shots,
+                shots=shots,
+                source=source,
             )
-        )
+        ]
 
     return run
 

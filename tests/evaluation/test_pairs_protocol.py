@@ -67,6 +67,18 @@ def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: i
             k=10,
             shots=(3, 1),
         )
+        states["labelled"] = observed_pairs_runs(
+            service,
+            atlas=ATLAS,
+            dataset=dataset,
+            submap_of=submap_of,
+            queries=queries,
+            frame_to_reference=frame_to_reference,
+            before=served,
+            k=10,
+            shots=(3,),
+            source="labelled",
+        )
         states["after"] = _atlas_state(service)
         states["served"] = served
         return list(runs)
@@ -118,6 +130,19 @@ def test_observe_records_the_pairs_and_a_real_job_learns_from_them(protocol_run)
 
 
 @pytest.mark.slow
+def test_labelled_shots_give_the_job_their_ground_truth_pairs(protocol_run) -> None:  # type: ignore[no-untyped-def]
+    # the revisit protocol as served: every shot stored and labelled with its partner
+    dataset, submap_of, _, states = protocol_run
+    (run,) = states["labelled"]
+    assert run.source == "labelled" and run.statuses == {"labelled": len(run.observed)}
+    assert len(run.pairs) == len(run.observed) == 3 * (PLACES // 5) and run.right.all()
+    assert run.job["status"] == "succeeded" and run.after is not None
+    methods, row = observed_pairs_rows(run, dataset, submap_of, "LoopNet DISK")
+    assert row["protocol"] == "pairs-labelled" and "labelled from ground truth" in methods[1].label
+    assert [m.name for m in methods] == ["pairs-labelled-k3-before", "pairs-labelled-k3-after"]
+
+
+@pytest.mark.slow
 def test_the_rows_report_before_after_and_served(protocol_run) -> None:  # type: ignore[no-untyped-def]
     dataset, submap_of, result, _ = protocol_run
     many = result.in_atlas[0]
@@ -155,5 +180,5 @@ def test_loopnet_eval_writes_the_pairs_protocol(tmp_path: Path) -> None:
     assert row["protocol"] == "pairs-observe" and row["shots"] == 1
     assert "pairs-observe-k1-before" in [m["name"] for m in report["methods"]]
     markdown = (config.output / "report.md").read_text()
-    assert "## Adaptation from the pairs observe verified" in markdown
-    assert f"| 1 | {row['observed']} (" in markdown
+    assert "## Adaptation from revisit pairs, as served" in markdown
+    assert f"| observe | 1 | {row['observed']} (" in markdown

@@ -165,7 +165,8 @@ def adapt_heads(
     fit_seconds = time.perf_counter() - started
     pairs_gate = compare_on_pairs(active, heads, data, held, window)
     stretches = split_for_job(data, 1).held_out
-    stretch_gate = compare_on_held_out(active, heads, data, stretches, window)
+    # a second robot's frame finding the first robot's frames of its place is right there
+    stretch_gate = compare_on_held_out(active, heads, data, stretches, window, same_place=pairs)
     gate = {
         **pairs_gate,
         "pairs_not_worse": pairs_gate["not_worse"],

@@ -85,13 +85,19 @@ def _evenly(frames: np.ndarray, most: int) -> np.ndarray:
 
 
 def held_out_scores(
-    heads: LoopNetHeads, data: TrainingData, held_out: np.ndarray, window: int
+    heads: LoopNetHeads,
+    data: TrainingData,
+    held_out: np.ndarray,
+    window: int,
+    same_place: np.ndarray | None = None,
 ) -> HeldOutScores:
     """Ranks every other frame of the atlas (by the heads' embedding) for each ``held_out``
     frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap, or of its
     robot at most ``window`` frames away: a place no training step saw must still find its own
     neighbourhood, not a trained place. (Only stretch edges would have a right answer among the
-    frames outside the stretches.)"""
+    frames outside the stretches.) ``same_place``: ``P x 2`` rows known to show one place
+    (revisit pairs): the neighbourhood of a pair's other frame is right too, so a frame of
+    a second robot that finds the first robot's frames of its place is not counted wrong."""
     embeddings = embed_vectors(heads, data.local, data.global_)
     codes, rank, _ = data.sequence
     held_out = _evenly(held_out, JUDGED_FRAMES)
@@ -107,6 +113,8 @@ def held_out_scores(
             (codes[None, :] == codes[rows, None])
             & (np.abs(rank[None, :] - rank[rows, None]) <= window)
         )
+        if same_place is not None and len(same_place):
+            right |= _partners_neighbourhood(right, data, same_place, window)
         right[np.arange(len(rows)), rows] = False
         hits += int(np.sum(right[np.arange(len(rows)), similarity.argmax(axis=1)]))
         precisions += [
@@ -117,20 +125,49 @@ def held_out_scores(
     return HeldOutScores(hits / len(held_out), float(np.mean(precisions)))
 
 
+def _partners_neighbourhood(
+    right: np.ndarray, data: TrainingData, same_place: np.ndarray, window: int
+) -> np.ndarray:
+    """Per row of ``right`` (its frame's neighbourhood), the neighbourhoods of the other frames
+    of the ``same_place`` pairs that touch it."""
+    codes, rank, _ = data.sequence
+    both = np.concatenate([same_place, same_place[:, ::-1]])
+    extra = np.zeros_like(right)
+    for i in range(len(right)):
+        partners = both[right[i, both[:, 0]], 1]
+        if len(partners):
+            extra[i] = np.any(
+                (data.submaps[None, :] == data.submaps[partners, None])
+                | (
+                    (codes[None, :] == codes[partners, None])
+                    & (np.abs(rank[None, :] - rank[partners, None]) <= window)
+                ),
+                axis=0,
+            )
+    return extra
+
+
 def compare_on_held_out(
-    active: LoopNetHeads, new: LoopNetHeads, data: TrainingData, held_out: np.ndarray, window: int
+    active: LoopNetHeads,
+    new: LoopNetHeads,
+    data: TrainingData,
+    held_out: np.ndarray,
+    window: int,
+    same_place: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """:func:`held_out_scores` of the active and the new heads: the new version is not worse
     when it is at least as good by both nearest-frame accuracy and mean average precision."""
     if len(held_out) == 0:
         return {"frames": 0, "active": None, "new": None, "change": None, "not_worse": True}
-    before = held_out_scores(active, data, held_out, window)
-    after = held_out_scores(new, data, held_out, window)
+    before = held_out_scores(active, data, held_out, window, same_place)
+    after = held_out_scores(new, data, held_out, window, same_place)
     return {
         "frames": int(len(held_out)),
         "judged_frames": min(len(held_out), JUDGED_FRAMES),
         "judged_on": "held-out stretches: the other frames of their submap or within "
-        f"{window} frames, nearest (accuracy) and all ranked (mean average precision)",
+        f"{window} frames"
+        + (", or of their revisit pairs' places" if same_place is not None else "")
+        + ", nearest (accuracy) and all ranked (mean average precision)",
         "active": round(before.accuracy, 4),
         "new": round(after.accuracy, 4),
         "change": round(after.accuracy - before.accuracy, 4),

@@ -126,3 +126,25 @@ def test_the_gate_judges_an_evenly_spread_share_of_a_large_hold_out(
     assert full["judged_frames"] == len(HELD) and capped["judged_frames"] == 4
     assert capped["frames"] == len(HELD) and capped["not_worse"] is True
     assert held_out._evenly(np.arange(20), 4).tolist() == [0, 6, 12, 19]
+
+
+def test_a_second_robots_frame_finding_its_pair_partners_place_is_right() -> None:
+    # robot "b" revisits the places of robot "a" in a submap of its own; each b frame is
+    # a's frame of its place plus a small change, so its nearest other frame is a's.
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(40, 128)).astype(np.float32)
+    b = a[10:20] + 0.05 * rng.normal(size=(10, 128)).astype(np.float32)
+    vectors = np.concatenate([a, b])
+    data = TrainingData(
+        vectors[:, :64],
+        vectors[:, 64:],
+        np.array([i // 5 for i in range(40)] + [100] * 10),
+        np.concatenate([np.arange(40), np.arange(10) * 10]),  # b's frames far apart in time
+        np.array(["a"] * 40 + ["b"] * 10),
+    )
+    heads = LoopNetHeads(HeadsConfig(local_dim=64, global_dim=64, hidden_dim=32)).eval()
+    held = np.arange(40, 50)
+    pairs = np.stack([np.arange(40, 50), np.arange(10, 20)], axis=1)
+    without = held_out.held_out_scores(heads, data, held, window=2)
+    with_pairs = held_out.held_out_scores(heads, data, held, window=2, same_place=pairs)
+    assert without.accuracy <= 0.2 and with_pairs.accuracy == 1.0

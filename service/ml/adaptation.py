@@ -14,13 +14,15 @@ What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit row
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from service.ml.heads import LoopNetHeads
 from service.ml.held_out import HELD_OUT_SHARE, compare_on_held_out, split_for_job
+from service.ml.pair_loss import PairLossConfig, Places, fine_tune, identity_start
 from service.ml.pair_whitening import (
     PairWhitening,
     PairWhiteningConfig,
@@ -115,11 +117,15 @@ def adapt_heads(
     window: int = 2,
     min_pairs: int = 10,
     held_out_pairs: np.ndarray | None = None,
+    whiten: bool = True,
+    pair_loss: PairLossConfig | None = None,
 ) -> AdaptationResult:
     """Fit a learned whitening on ``data`` (the active version's branch inputs of every atlas
     frame) and ``pairs`` (``P x 2`` row indices), fold it into heads, and gate them against
     ``active`` (the heads serving now). ``held_out_pairs``: which pairs judge (None: whole
-    blocks of them, :func:`split_pairs`)."""
+    blocks of them, :func:`split_pairs`). ``whiten`` False starts from the centred input;
+    ``pair_loss`` set fine-tunes the start on the training pairs (:mod:`service.ml.pair_loss`),
+    stopping early on whole blocks of them kept out of the loss."""
     started = time.perf_counter()
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     base = active.config
@@ -136,7 +142,17 @@ def adapt_heads(
         train, held = pairs[train_idx], pairs[held_idx]
     else:
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
-    whitening = PairWhitening.fit(inputs, train, config)
+    def start_from(chosen: np.ndarray) -> PairWhitening:
+        if whiten:
+            return PairWhitening.fit(inputs, chosen, config)
+        return identity_start(inputs, len(chosen))
+
+    whitening = start_from(train)
+    tuned: dict[str, Any] = {}
+    if pair_loss is not None:
+        whitening, tuned = tune_on_pairs(
+            inputs, whitening, start_from, data, train, window, pair_loss
+        )
     heads = fold_into_heads(base, whitening)
     fit_seconds = time.perf_counter() - started
     pairs_gate = compare_on_pairs(active, heads, data, held, window)
@@ -155,7 +171,43 @@ def adapt_heads(
         "frames": int(len(data.submaps)),
         "shrinkage": round(whitening.shrinkage, 4),
         "dim": whitening.dim,
+        **tuned,
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
     return AdaptationResult(heads, whitening, gate, metrics)
+
+
+def tune_on_pairs(
+    inputs: np.ndarray,
+    start: PairWhitening,
+    start_from: Callable[[np.ndarray], PairWhitening],
+    data: TrainingData,
+    train: np.ndarray,
+    window: int,
+    config: PairLossConfig,
+) -> tuple[PairWhitening, dict[str, Any]]:
+    """:func:`fine_tune` ``start`` (fitted on every training pair) for as many steps as a run
+    on whole blocks of them, started from ``start_from`` those blocks and stopped early on the
+    rest (their mean reciprocal rank, as the gate scores pairs), found best. Too few pairs to
+    split, or no step helped: ``start``."""
+    fit_idx, stop_idx = split_pairs(len(train))
+    if len(stop_idx) == 0:
+        return start, {"pair_loss_steps": 0}
+    codes, rank, _ = data.sequence
+    places = Places(codes, rank, window)
+    stop = train[stop_idx]
+    trial = fine_tune(
+        inputs,
+        start_from(train[fit_idx]),
+        train[fit_idx],
+        places,
+        lambda embedded: pair_scores(embedded, data, stop, window)[1],
+        config,
+    )
+    steps = int(trial.metrics["pair_loss_best_step"])
+    metrics = {f"{name}_trial": value for name, value in trial.metrics.items()}
+    if steps == 0:
+        return start, {**metrics, "pair_loss_steps": 0}
+    final = fine_tune(inputs, start, train, places, None, replace(config, steps=steps))
+    return final.transform, {**metrics, **final.metrics}

@@ -48,18 +48,23 @@ class PairLossConfig:
         steps: most full-batch Adam steps.
         learning_rate: Adam's.
         anchor: weight of ``||A - I||^2 / kept`` (the pull towards the starting transform).
+        rank: of ``A - I`` (:class:`Turn`); None: a full matrix.
         check_every: steps between validation checks (and hard-negative mining).
         patience: checks without a better validation score before stopping.
-        seed: of nothing random yet but the ties of mining; kept for reproducible runs.
+        batch: asking frames per step, drawn anew each step (None: all of them): bounds a
+            step's cost on a large atlas.
+        seed: of the batches and the low-rank start.
     """
 
     temperature: float = 0.05
-    negatives: int = 32
-    steps: int = 150
+    negatives: int = 16
+    steps: int = 40
     learning_rate: float = 1e-3
     anchor: float = 1.0
+    rank: int | None = None
     check_every: int = 5
     patience: int = 4
+    batch: int | None = 256
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -69,6 +74,8 @@ class PairLossConfig:
             raise ValueError(f"negatives must be at least 1, got {self.negatives}")
         if self.steps < 0 or self.check_every < 1 or self.patience < 1:
             raise ValueError("steps >= 0, check_every >= 1 and patience >= 1 are required")
+        if self.rank is not None and self.rank < 1:
+            raise ValueError(f"rank must be at least 1, got {self.rank}")
         if self.learning_rate <= 0 or self.anchor < 0:
             raise ValueError("learning_rate must be positive and anchor not negative")
 
@@ -136,6 +143,61 @@ def listwise_loss(
     return F.cross_entropy(logits, torch.zeros(len(logits), dtype=torch.long))
 
 
+class Turn(torch.nn.Module):
+    """The trained map ``A = I + L R^T`` (rank ``rank``; None: ``A = I + M``, every entry
+    free), starting at the identity (``L = 0``, ``M = 0``): a low rank is the cheaper and the
+    stronger pull towards the start on a large atlas."""
+
+    def __init__(self, kept: int, rank: int | None) -> None:
+        super().__init__()
+        self.full: torch.nn.Parameter | None = None
+        if rank is None or rank >= kept:
+            self.full = torch.nn.Parameter(torch.zeros(kept, kept))
+            rank = 0
+        self.left = torch.nn.Parameter(torch.zeros(kept, rank))
+        self.right = torch.nn.Parameter(torch.randn(kept, rank) / np.sqrt(kept))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.full is not None:
+            return x + x @ self.full
+        return x + (x @ self.left) @ self.right.T
+
+    def penalty(self) -> torch.Tensor:
+        """``||A - I||_F^2``."""
+        if self.full is not None:
+            return self.full.pow(2).sum()
+        return torch.trace((self.left.T @ self.left) @ (self.right.T @ self.right))
+
+    def matrix(self) -> np.ndarray:
+        """``A`` as a ``kept x kept`` array."""
+        with torch.no_grad():
+            change = self.full if self.full is not None else self.left @ self.right.T
+            return (torch.eye(len(change)) + change).numpy()
+
+
+def batch_loss(
+    base: torch.Tensor,
+    turn: Turn,
+    askers: np.ndarray,
+    partners: np.ndarray,
+    negatives: np.ndarray,
+    config: PairLossConfig,
+) -> torch.Tensor:
+    """:func:`listwise_loss` of ``askers`` (rows of ``base``), embedding each row involved once."""
+    rows, inverse = np.unique(
+        np.concatenate([askers, partners, negatives.ravel()]), return_inverse=True
+    )
+    count = len(askers)
+    out = F.normalize(turn(base[torch.from_numpy(rows)]), dim=-1)
+    return listwise_loss(
+        out,
+        torch.from_numpy(inverse[:count]),
+        torch.from_numpy(inverse[count : 2 * count]),
+        torch.from_numpy(inverse[2 * count :].reshape(negatives.shape)),
+        config.temperature,
+    )
+
+
 def both_ways(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each side of ``P x 2`` pairs as an asking frame, with the other as its partner."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -158,40 +220,35 @@ def fine_tune(
     config = config or PairLossConfig()
     started = time.perf_counter()
     torch.manual_seed(config.seed)
+    generator = np.random.default_rng(config.seed)
     base = torch.from_numpy(
         ((np.asarray(vectors, np.float32) - start.mean) @ start.projection).astype(np.float32)
     )
     kept = base.shape[1]
-    identity = torch.eye(kept)
-    turn = torch.nn.Parameter(identity.clone())
-    optimiser = torch.optim.Adam([turn], lr=config.learning_rate)
+    turn = Turn(kept, config.rank)
+    optimiser = torch.optim.Adam(turn.parameters(), lr=config.learning_rate)
     askers, partners = both_ways(train)
 
     def embed_all() -> np.ndarray:
         with torch.no_grad():
-            return F.normalize(base @ turn, dim=-1).numpy()
+            return F.normalize(turn(base), dim=-1).numpy()
 
     def judge(embedded: np.ndarray) -> float:
         return score(embedded) if score is not None else float(step)
 
     step = 0
     embedded = embed_all()
-    best_score, best_step, best = judge(embedded), 0, turn.detach().clone()
+    best_score, best_step, best = judge(embedded), 0, turn.matrix()
     first_score, checks_without_gain, losses = best_score, 0, []
     while step < config.steps and checks_without_gain < config.patience and len(askers):
         negatives = hard_negatives(embedded, askers, partners, places, config.negatives)
-        rows, inverse = np.unique(
-            np.concatenate([askers, partners, negatives.ravel()]), return_inverse=True
-        )
-        ask_t = torch.from_numpy(inverse[: len(askers)])
-        partner_t = torch.from_numpy(inverse[len(askers) : 2 * len(askers)])
-        negative_t = torch.from_numpy(inverse[2 * len(askers) :].reshape(negatives.shape))
-        inputs = base[torch.from_numpy(rows)]
         for _ in range(min(config.check_every, config.steps - step)):
+            batch = np.arange(len(askers))
+            if config.batch is not None and config.batch < len(askers):
+                batch = np.sort(generator.choice(len(askers), config.batch, replace=False))
             optimiser.zero_grad()
-            out = F.normalize(inputs @ turn, dim=-1)
-            loss = listwise_loss(out, ask_t, partner_t, negative_t, config.temperature)
-            loss = loss + config.anchor * (turn - identity).pow(2).sum() / kept
+            loss = batch_loss(base, turn, askers[batch], partners[batch], negatives[batch], config)
+            loss = loss + config.anchor * turn.penalty() / kept
             loss.backward()
             optimiser.step()
             losses.append(float(loss.detach()))
@@ -199,11 +256,11 @@ def fine_tune(
         embedded = embed_all()
         current = judge(embedded)
         if current > best_score:
-            best_score, best_step, best = current, step, turn.detach().clone()
+            best_score, best_step, best = current, step, turn.matrix()
             checks_without_gain = 0
         else:
             checks_without_gain += 1
-    projection = start.projection @ best.numpy()
+    projection = start.projection @ best
     tuned = PairWhitening(
         mean=start.mean,
         projection=np.ascontiguousarray(projection, np.float32),

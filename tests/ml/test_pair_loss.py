@@ -118,7 +118,22 @@ def test_the_adapt_methods_with_the_loss_pass_the_gate(whiten: bool) -> None:
         pair_loss=PairLossConfig(learning_rate=0.01, anchor=0.1),
     )
     assert result.gate["pairs_not_worse"] and result.gate["change"] > 0.2
-    assert result.metrics["pair_loss_steps"] > 0
+    assert result.metrics["pair_loss_steps_trial"] > 0
+    # the whitening alone ranks every validation pair first here: the loss has nothing to add
+    assert (result.metrics["pair_loss_steps"] > 0) == (not whiten)
+
+
+def test_a_low_rank_change_learns_too() -> None:
+    data, pairs = revisits()
+    inputs = fused_inputs(HeadsConfig(DIM // 2, DIM // 2), data.local, data.global_)
+    start = identity_start(inputs, 60)
+    before = pair_scores(start.transform(inputs), data, pairs[60:], 0)
+    config = PairLossConfig(steps=60, learning_rate=0.01, anchor=0.1, rank=4)
+    result = fine_tune(inputs, start, pairs[:60], places_of(data, 0), None, config)
+    after = pair_scores(result.transform.transform(inputs), data, pairs[60:], 0)
+    assert after[0] >= before[0] + 0.25
+    change = result.transform.projection - start.projection
+    assert np.linalg.matrix_rank(change, tol=1e-4) <= 4
 
 
 def test_config_rejects_nonsense() -> None:

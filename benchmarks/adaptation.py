@@ -4,7 +4,8 @@ build of every frame, on synthetic calibrated branches of the real size.
 
     OMP_NUM_THREADS=1 python benchmarks/adaptation.py --frames 10000 --pairs 1000 --threads 1
 
-``--method whitening+pairs`` adds the listwise loss over the pairs (:mod:`service.ml.pair_loss`).
+``--method`` as the job's (default: the job's default, whitening+pairs: the learned whitening,
+then the listwise loss over the pairs of :mod:`service.ml.pair_loss`).
 
 The atlas is one robot's route of ``frames - pairs`` frames plus ``pairs`` frames of a second
 robot revisiting evenly spaced places under a shifted condition (a random offset shared by the
@@ -21,8 +22,8 @@ import numpy as np
 import torch
 
 from service.index import AtlasIndex
+from service.jobs.adaptation_config import ADAPT_METHODS, DEFAULT_METHOD, AdaptConfig
 from service.ml.adaptation import adapt_heads
-from service.jobs.adaptation_config import ADAPT_METHODS, AdaptConfig
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.pair_loss import PairLossConfig
 from service.ml.pair_whitening import PairWhiteningConfig
@@ -59,7 +60,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=1_000)
     parser.add_argument("--dims", type=int, default=512, help="per branch (the calibrated size)")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--method", default="whitening", choices=ADAPT_METHODS)
+    parser.add_argument("--method", default=DEFAULT_METHOD, choices=ADAPT_METHODS)
     parser.add_argument("--rank", type=int, help="of the loss's change (default: full)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

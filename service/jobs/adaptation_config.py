@@ -13,7 +13,7 @@ from service.domain.pairs import PairFilter
 
 AdaptMethod = Literal["whitening", "whitening+pairs", "pairs"]
 ADAPT_METHODS: tuple[AdaptMethod, ...] = ("whitening", "whitening+pairs", "pairs")
-DEFAULT_METHOD: AdaptMethod = "whitening"
+DEFAULT_METHOD: AdaptMethod = "whitening+pairs"
 METHOD_TEXT = {
     "whitening": "learned whitening from revisit pairs",
     "whitening+pairs": "learned whitening, then a listwise loss over the pairs",

@@ -142,6 +142,7 @@ def adapt_heads(
         train, held = pairs[train_idx], pairs[held_idx]
     else:
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
+
     def start_from(chosen: np.ndarray) -> PairWhitening:
         if whiten:
             return PairWhitening.fit(inputs, chosen, config)

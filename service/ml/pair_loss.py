@@ -99,9 +99,10 @@ class Places:
 
     def near(self, rows: np.ndarray) -> np.ndarray:
         """``len(rows) x n`` mask: frames of each row's robot within ``window`` of it."""
-        return (self.codes[None, :] == self.codes[rows, None]) & (
+        same = (self.codes[None, :] == self.codes[rows, None]) & (
             np.abs(self.rank[None, :] - self.rank[rows, None]) <= self.window
         )
+        return np.asarray(same, dtype=bool)
 
 
 def hard_negatives(
@@ -249,7 +250,7 @@ def fine_tune(
             optimiser.zero_grad()
             loss = batch_loss(base, turn, askers[batch], partners[batch], negatives[batch], config)
             loss = loss + config.anchor * turn.penalty() / kept
-            loss.backward()
+            torch.autograd.backward(loss)
             optimiser.step()
             losses.append(float(loss.detach()))
             step += 1

@@ -110,6 +110,8 @@ def test_observed_pairs_train_an_adaptation_through_the_worker(
         and metrics["training_pairs"] + metrics["held_out_pairs"] == PLACES
     )
     assert metrics["held_out"]["pairs"] == metrics["held_out_pairs"] > 0
+    # the default method: the whitening, then the listwise loss (a trial run chose its length)
+    assert metrics["pair_loss_steps_trial"] > 0 and "pair_loss_steps" in metrics
     assert "held-out pairs" in job["message"]
     assert job["message"].startswith("model version 2 ")
     assert progress == sorted(progress)

@@ -91,7 +91,9 @@ def test_fine_tuning_ranks_held_out_pairs_better_than_its_start() -> None:
     assert before[0] < 0.6
     assert after[0] >= before[0] + 0.25 and after[1] > before[1]
     assert result.metrics["pair_loss_best_step"] > 0
-    assert result.metrics["pair_loss_validation_best"] > result.metrics["pair_loss_validation_start"]
+    assert (
+        result.metrics["pair_loss_validation_best"] > result.metrics["pair_loss_validation_start"]
+    )
 
 
 def test_a_run_that_finds_nothing_returns_its_start() -> None:

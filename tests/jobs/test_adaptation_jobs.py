@@ -137,6 +137,10 @@ def test_a_job_without_useful_pairs_is_refused_with_its_reason(app_client: TestC
         "least 10 (verified closures recorded by observe, or labelled pairs)"
     )
     assert [v["version"] for v in client.get("/v1/atlases/campus/models").json()] == [1]
+    unknown = client.post(
+        "/v1/atlases/campus/jobs", json={"kind": "adapt", "adaptation": {"method": "magic"}}
+    )
+    assert unknown.status_code == 422 and "whitening+pairs" in unknown.text
 
 
 def bearer(token: str) -> dict[str, str]:

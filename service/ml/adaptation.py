@@ -4,7 +4,8 @@ What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit row
 
 1. the pairs are split into training pairs and held-out pairs (whole blocks of them, in the
    order they were recorded: neighbouring pairs of one drive are near-copies of each other);
-2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs, and
+2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs
+   (optionally fine-tuned with a listwise loss over them, :mod:`service.ml.pair_loss`), and
    folded into heads over the same branches (:func:`fold_into_heads`);
 3. the not-worse gate compares the active and the new heads on the held-out pairs (each side
    of a pair ranks every atlas frame but its own neighbourhood; right: the other side or its

@@ -94,6 +94,14 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "pairs per submap, left out of the test queries), comma-separated; '' for none",
     )
     ev.add_argument(
+        "--adapt-pairs-from-observe",
+        default="",
+        metavar="K[,K...]",
+        help="K values of the pairs protocol: K query-condition frames per submap observed "
+        "through the service (as served), the pairs observe verified given to a real adapt job, "
+        "the other queries answered as served before and after; '' for none",
+    )
+    ev.add_argument(
         "--adapt-shrinkage",
         type=float,
         help="the adapt job's shrinkage of the pairs' covariance (default: Ledoit-Wolf's)",
@@ -251,6 +259,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         adapt_shots=_csv_list(int, args.adapt_shots),
         adapt_shrinkage=args.adapt_shrinkage,
         adapt_method=args.adapt_method,
+        adapt_observe_shots=_csv_list(int, args.adapt_pairs_from_observe),
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         ransac_backend=settings.ransac_backend,

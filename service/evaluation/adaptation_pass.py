@@ -95,7 +95,7 @@ def adaptation_rows(
         )
         per_query = (time.perf_counter() - started) * 1000.0 / max(len(test), 1)
         cosine_top = ranking.scores[:, 0].copy()
-        ranking, score_text = _scored(heads, start, ranking)
+        ranking, score_text = _scored(heads, start, ranking, adapted.impostor_refit)
         subset = _subset(dataset, test)
         right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
         after = evaluate_ranking(

@@ -114,6 +114,43 @@ def retraining_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The pairs protocol (``pairs_pass``): per K, what observe recorded, the adapt job's
+    verdict, and the test queries as served before -> after (the served version in brackets)."""
+    lines = [
+        "| K | observed (answers) | pairs recorded (right) | adapt job | test queries "
+        "| R@1 before → after (served) | R@100%P before → after (served) "
+        "| wrong-match score excess median before → after (served) |",
+        "|" + " --- |" * 8,
+    ]
+
+    def arrow(key: str, row: dict[str, Any]) -> str:
+        after = _fmt(row[f"{key}_after"]) if f"{key}_after" in row else "-"
+        return f"{_fmt(row[f'{key}_before'])} → {after} ({_fmt(row[f'{key}_served'])})"
+
+    for row in rows:
+        statuses = ", ".join(f"{n} {status}" for status, n in sorted(row["statuses"].items()))
+        job = row["job"]
+        lines.append(
+            f"| {row['shots']} | {row['observed']} ({statuses}) "
+            f"| {row['pairs']} ({row['pairs_right']}) | {job['status']}: {job['message']} "
+            f"| {row['test_queries']} | {arrow('recall@1', row)} "
+            f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} |"
+        )
+    lines += [
+        "",
+        "K query-condition frames per revisited submap are observed as served by a second "
+        "robot asking about the map's frames; every verified closure observe recorded is a pair "
+        "(right: its frame is a right reference by the ground truth); a real adapt job with its "
+        "default parameters learns from them and its gate decides. Test queries = the other "
+        "queries, over the map's frames. After = the job's version (measured even when the gate "
+        "kept it back); served = the version the gate left active. Wrong-match score excess: "
+        "the decision's score part of wrong best answers (calibrated score - log10 of the "
+        "atlas's frames, clipped to [-4, 8]), median.",
+    ]
+    return "\n".join(lines)
+
+
 def stages_table(stages: dict[str, dict[str, dict[str, float]]]) -> str:
     lines = ["| pass | stage | median ms | p95 ms | frames |", "| --- | --- | --- | --- | --- |"]
     for pass_name, by_stage in stages.items():
@@ -160,6 +197,16 @@ def write_markdown(report: dict[str, Any], methods: Sequence[MethodResult], path
         *(
             ["## Retraining (few-shot, heads only)", "", retraining_table(report["retraining"]), ""]
             if report.get("retraining")
+            else []
+        ),
+        *(
+            [
+                "## Adaptation from the pairs observe verified",
+                "",
+                observed_pairs_table(report["observed_pairs"]),
+                "",
+            ]
+            if report.get("observed_pairs")
             else []
         ),
         "## Time per stage",

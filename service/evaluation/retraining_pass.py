@@ -41,7 +41,7 @@ from service.ml.calibration import Calibration, CalibrationInputs
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import compare_on_held_out, split_for_job
 from service.ml.pipeline import embed_vectors
-from service.ml.retrained_impostors import retrained_impostor_model
+from service.ml.retrained_impostors import ProbeRefit, retrained_impostor_model
 from service.ml.training import TrainingConfig, TrainingData, split_shots, train_heads
 
 PROTOCOLS = ("map", "revisit")
@@ -183,14 +183,28 @@ def _rows(ranking: Ranking, keep: np.ndarray) -> Ranking:
     return Ranking(ranking.indices[keep], ranking.scores[keep])
 
 
-def _scored(heads: LoopNetHeads, start: StartingPoint, ranking: Ranking) -> tuple[Ranking, str]:
+def _scored(
+    heads: LoopNetHeads,
+    start: StartingPoint,
+    ranking: Ranking,
+    refit: ProbeRefit | None = None,
+) -> tuple[Ranking, str]:
     """The ranking with the calibrated scores of the impostor model the job refits for the
-    trained heads, or with cosines where there is no calibration (nor, in the job, a score)."""
+    trained heads (``refit``: as :func:`retrained_impostor_model`), or with cosines where
+    there is no calibration (nor, in the job, a score)."""
     if start.calibration is None or start.stored is None:
         return ranking, "cosine (uncalibrated start: the job keeps no impostor model)"
-    impostors = retrained_impostor_model(heads, start.calibration, start.stored)
+    impostors = retrained_impostor_model(heads, start.calibration, start.stored, refit)
     scored = Ranking(ranking.indices, impostors.score(ranking.scores))
     return scored, "calibrated: -log10 P(impostor cosine >= c), refitted as the job does"
+
+
+def revisit_shots(revisited: np.ndarray, k_shots: int) -> np.ndarray:
+    """``k_shots`` query-condition frames per revisited submap (``revisited``: each query's
+    submap, -1 when unanswerable), as the revisit protocols pick them: query indices."""
+    answerable = np.flatnonzero(revisited >= 0)
+    picked, _ = split_shots(revisited[answerable], k_shots)
+    return np.asarray(answerable[picked], dtype=np.int64)
 
 
 def shot_data(
@@ -202,11 +216,9 @@ def shot_data(
     ref_local, ref_global = start.references
     query_local, query_global = start.queries
     n_refs = len(ref_submaps)
-    query_shots = np.zeros(0, dtype=np.int64)
-    if k_shots is not None:
-        answerable = np.flatnonzero(revisited >= 0)
-        picked, _ = split_shots(revisited[answerable], k_shots)
-        query_shots = answerable[picked]
+    query_shots = (
+        np.zeros(0, dtype=np.int64) if k_shots is None else revisit_shots(revisited, k_shots)
+    )
     test = np.setdiff1d(np.arange(len(revisited)), query_shots)
     data = TrainingData(
         local=np.concatenate([ref_local, query_local[query_shots]]),

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from service.app.catalog import AtlasService
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
 from service.evaluation.adaptation_pass import PROTOCOL as ADAPT_PROTOCOL
@@ -44,6 +45,7 @@ from service.evaluation.calibrated_pass import (
 from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
 from service.evaluation.image_check import unreadable_images
 from service.evaluation.metrics import rank_by_similarity, summary
+from service.evaluation.pairs_pass import observed_pairs_rows, observed_pairs_runs
 from service.evaluation.protocol import (
     MethodResult,
     assign_submaps,
@@ -57,8 +59,9 @@ from service.evaluation.retraining_pass import (
     retraining_rows,
 )
 from service.evaluation.sequence_pass import dataset_trajectories, sequence_methods
-from service.evaluation.served_pass import served_method
-from service.evaluation.service_pass import PassResult, run_service_pass
+from service.evaluation.served_pass import ServedAnswers, served_method
+from service.evaluation.service_pass import ATLAS as SERVICE_ATLAS
+from service.evaluation.service_pass import InAtlas, PassResult, run_service_pass
 from service.evaluation.verification_pass import (
     KeypointCache,
     subsample_queries,
@@ -66,6 +69,7 @@ from service.evaluation.verification_pass import (
 )
 from service.jobs.adaptation_config import DEFAULT_METHOD, AdaptMethod
 from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
+from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.images import decode_image
 from service.ml.pair_whitening import PairWhiteningConfig
@@ -116,6 +120,9 @@ class EvalConfig:
             precision are reused in another, so give each its own ``cache_dir``.
         served: add a ``loopnet-<extractor>-served`` row per extractor: the queries answered
             as the service serves them (``served_pass``).
+        adapt_observe_shots: K values of the pairs protocol (``pairs_pass``: the pairs the
+            service's own observe verified, a real adapt job, served before -> after); needs
+            ``served``.
     """
 
     dataset: Path
@@ -143,6 +150,7 @@ class EvalConfig:
     adapt_shots: tuple[int, ...] = ()
     adapt_shrinkage: float | None = None
     adapt_method: AdaptMethod = DEFAULT_METHOD
+    adapt_observe_shots: tuple[int, ...] = ()
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5
@@ -495,6 +503,7 @@ class EvalRun:
     calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     calibrated_branches: dict[str, CalibratedBranches] = field(default_factory=dict)
     retraining: list[RetrainingRow] = field(default_factory=list)
+    observed_pairs: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def first_pass(self) -> PassResult:
@@ -503,7 +512,7 @@ class EvalRun:
 
     def report(self, partial: str | None) -> dict[str, Any]:
         data = self.data
-        return _report(
+        report = _report(
             self.config,
             data.dataset,
             data.submap_note,
@@ -515,6 +524,8 @@ class EvalRun:
             data.unreadable,
             partial,
         )
+        report["observed_pairs"] = self.observed_pairs
+        return report
 
     def checkpoint(self, next_step: str) -> None:
         """Write the rows done so far (no plots): a run stopped later keeps them."""
@@ -616,6 +627,7 @@ def run_passes(run: EvalRun) -> None:
             else None,
             serve=config.served,
             serve_sequence=max(config.sequence, default=0),
+            in_atlas=_observed_pairs_step(config, data) if first else None,
         )
         try:
             calibrated = (
@@ -676,6 +688,18 @@ def run_ablations(run: EvalRun) -> None:
         )
         run.methods += [row.after for row in run.retraining if row.protocol == ADAPT_PROTOCOL]
         run.checkpoint("verification and baselines")
+    if run.first_pass.in_atlas:
+        extractor = run.first_pass.preset.local.name
+        label = f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"
+        for observed in run.first_pass.in_atlas:
+            rows, report_row = observed_pairs_rows(
+                observed, run.data.dataset, run.data.submap_of, label
+            )
+            run.methods += rows
+            run.observed_pairs.append(report_row)
+        run.checkpoint("verification and baselines")
+    elif config.adapt_observe_shots:
+        run.skipped["pairs protocol"] = "needs the served pass (--served) and queries"
     if config.verify and run.first_keypoints is not None:
         _verification_step(run, run.first_keypoints)
         run.checkpoint("the baselines")
@@ -714,6 +738,34 @@ def _retraining_step(run: EvalRun) -> None:
         extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
     )
     run.methods += [row.after for row in run.retraining]
+
+
+def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None:
+    """The pairs protocol on the first pass's atlas (:mod:`pairs_pass`), when asked for."""
+    if not config.adapt_observe_shots:
+        return None
+
+    def run(
+        service: AtlasService,
+        queries: Sequence[FrameFeatures],
+        frame_to_reference: dict[int, int],
+        served: ServedAnswers,
+    ) -> list[Any]:
+        return list(
+            observed_pairs_runs(
+                service,
+                atlas=SERVICE_ATLAS,
+                dataset=data.dataset,
+                submap_of=data.submap_of,
+                queries=queries,
+                frame_to_reference=frame_to_reference,
+                before=served,
+                k=config.k,
+                shots=config.adapt_observe_shots,
+            )
+        )
+
+    return run
 
 
 def _verification_step(run: EvalRun, keypoints: KeypointCache) -> None:

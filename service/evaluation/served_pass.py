@@ -11,13 +11,15 @@ atlas's feature store, as a served query does.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from service.app.catalog import AtlasService
+from service.app.filters import QueryFilter
 from service.app.ingest import FrameFields
 from service.app.results import QueryResult
 from service.app.verify import CandidateVerification, verification_config
@@ -56,6 +58,36 @@ class ServedAnswers:
     verification: dict[str, Any] = field(default_factory=dict)
     sequence_length: int = 0
 
+    def subset(self, keep: np.ndarray) -> ServedAnswers:
+        """The answers of the queries ``keep`` (indices), in that order."""
+        return replace(
+            self,
+            ranking=Ranking(self.ranking.indices[keep], self.ranking.scores[keep]),
+            status=[self.status[i] for i in keep],
+            parts=self.parts[keep],
+            query_ms=self.query_ms[keep],
+        )
+
+
+@contextmanager
+def served_settings(service: AtlasService, extractor: str) -> Iterator[Settings]:
+    """The service's queries (and observations) with :data:`DEFAULTS` at their defaults while
+    the block runs (the harness's atlas turns verification off); the settings in force."""
+    defaults = Settings(data_dir=service.settings.data_dir)
+    settings = service.settings.model_copy(
+        update={name: getattr(defaults, name) for name in DEFAULTS}
+    )
+    queries_api = service.queries
+    before = (queries_api.verification, queries_api.settings)
+    queries_api.verification = CandidateVerification(
+        verification_config(settings, extractor), service.inference
+    )
+    queries_api.settings = settings
+    try:
+        yield settings
+    finally:
+        queries_api.verification, queries_api.settings = before
+
 
 def served_answers(
     service: AtlasService,
@@ -65,27 +97,21 @@ def served_answers(
     atlas: str,
     extractor: str,
     sequence_length: int = 0,
+    query_filter: QueryFilter | None = None,
 ) -> ServedAnswers:
     """Ask every query through the service with the default verification switched on.
 
-    ``sequence_length`` 0: anonymous queries (``POST /query``). Otherwise the queries are one
-    robot's observations (``POST /observe``, one second apart, asking about the other robots'
-    frames only, so the references): each is answered with its sequence of that length and
-    consistency, then joins the atlas; call it last, after every anonymous pass.
+    ``sequence_length`` 0: anonymous queries (``POST /query``), over the frames
+    ``query_filter`` allows (None: all). Otherwise the queries are one robot's observations
+    (``POST /observe``, one second apart, asking about the other robots' frames only, so the
+    references): each is answered with its sequence of that length and consistency, then joins
+    the atlas; call it last, after every anonymous pass.
     """
-    defaults = Settings(data_dir=service.settings.data_dir)
-    settings = service.settings.model_copy(
-        update={name: getattr(defaults, name) for name in DEFAULTS}
-    )
-    queries_api = service.queries
-    before = (queries_api.verification, queries_api.settings)
-    config = verification_config(settings, extractor)
-    queries_api.verification = CandidateVerification(config, service.inference)
-    queries_api.settings = settings
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
     indices, scores, status, parts, query_ms = [], [], [], [], []
-    try:
+    with served_settings(service, extractor) as settings:
+        config = service.queries.verification.config
         for i, features in enumerate(queries):
             features = replace(features, local=_stored(features.local))
             start = time.perf_counter()
@@ -102,7 +128,9 @@ def served_answers(
                     sequence_length=sequence_length,
                 )
             else:
-                answer = service.query_features(atlas_name=atlas, features=features, k=k)
+                answer = service.query_features(
+                    atlas_name=atlas, features=features, k=k, query_filter=query_filter
+                )
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
@@ -111,8 +139,6 @@ def served_answers(
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
             parts.append(_parts(answer))
-    finally:
-        queries_api.verification, queries_api.settings = before
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,

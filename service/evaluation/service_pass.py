@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -76,6 +77,14 @@ class PassResult:
     calibrated: CalibratedAnswers | None = None
     served: ServedAnswers | None = None
     served_sequence: ServedAnswers | None = None
+    in_atlas: list[Any] = field(default_factory=list)
+
+
+# work on the pass's atlas once its queries are served: (service, the queries' features, frame
+# id -> reference index, the served answers) -> what PassResult.in_atlas keeps
+InAtlas = Callable[
+    [AtlasService, Sequence[FrameFeatures], dict[int, int], ServedAnswers], list[Any]
+]
 
 
 @dataclass
@@ -279,6 +288,7 @@ def run_service_pass(
     calibration: dict[str, object] | None = None,
     serve: bool = False,
     serve_sequence: int = 0,
+    in_atlas: InAtlas | None = None,
 ) -> PassResult:
     """Ingest the references into a temporary atlas, query every query image, keep the vectors.
 
@@ -288,6 +298,8 @@ def run_service_pass(
     ``serve``, every query is then asked once more as the service serves it (verification and
     the loop decision at the defaults: :mod:`service.evaluation.served_pass`), and with
     ``serve_sequence`` L once more as one robot's observations with sequences of length L.
+    ``in_atlas`` runs on the atlas after the served pass, before the sequences' observations
+    (it must leave the atlas as it found it).
     """
     path = cache_path(cache_dir, dataset, pipeline) if cache_dir else None
     cached = CachedFeatures.load(path) if path is not None else None
@@ -381,6 +393,11 @@ def run_service_pass(
             if serve and query_features
             else None
         )
+        kept = (
+            in_atlas(service, query_features, frame_to_reference, served)
+            if in_atlas is not None and served is not None
+            else []
+        )
         served_sequence = (  # last: the observations join the atlas
             served_answers(
                 service,
@@ -429,6 +446,7 @@ def run_service_pass(
         calibrated=calibrated,
         served=served,
         served_sequence=served_sequence,
+        in_atlas=kept,
     )
 
 

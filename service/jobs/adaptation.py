@@ -69,7 +69,14 @@ def run_adaptation(
         if jobs.get_job(session, job_id=job_id).cancel_requested:
             raise TrainingCancelled("cancelled after fitting")
     version, weights, version_calibration = runner.write_version_files(
-        job_id, atlas_id, result.heads, calibration, active_config, files, progress=40
+        job_id,
+        atlas_id,
+        result.heads,
+        calibration,
+        active_config,
+        files,
+        progress=40,
+        impostor_refit=result.impostor_refit,
     )
     metrics: dict[str, Any] = {**result.metrics, "held_out": gate, "activated": activate}
     if activate:

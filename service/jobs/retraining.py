@@ -35,7 +35,7 @@ from service.ml.active_model import ActiveModel
 from service.ml.adaptation import NoUsefulPairs
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import compare_on_held_out, split_for_job
-from service.ml.retrained_impostors import retrained_impostor_model
+from service.ml.retrained_impostors import ProbeRefit, retrained_impostor_model
 from service.ml.training import (
     TrainingCancelled,
     TrainingConfig,
@@ -207,11 +207,13 @@ class JobRunner:
         files: list[Any],
         *,
         progress: float,
+        impostor_refit: ProbeRefit | None = None,
     ) -> tuple[int, Path, dict[str, Any] | None]:
         """The next version's number, its heads' weights file and, on a calibrated atlas, its
         calibration with the impostor model refitted on the new heads (a trained embedding
         changes what a cosine means; refitted as the calibration fitted it, unseen frames
-        against seen ones). Every file written is appended to ``files``."""
+        against seen ones; ``impostor_refit``: heads fitted on the atlas, refitted without
+        the probe's held-out frames). Every file written is appended to ``files``."""
         with self.sessions() as session:
             version = 1 + max(
                 v.version for v in repo.list_model_versions(session, atlas_id=atlas_id)
@@ -224,7 +226,7 @@ class JobRunner:
         self._progress(job_id, progress, "refitting the impostor model")
         with self.sessions() as session:
             inputs = load_calibration_inputs(session, atlas_id)
-        calibration.impostors = retrained_impostor_model(heads, calibration, inputs)
+        calibration.impostors = retrained_impostor_model(heads, calibration, inputs, impostor_refit)
         del inputs
         path = models_store.calibration_file(self.settings.models_dir, atlas_id, version)
         files.append(path)

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from service.ml.heads import LoopNetHeads
+from service.ml.calibration_config import ImpostorProbe
+from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import HELD_OUT_SHARE, compare_on_held_out, split_for_job
 from service.ml.pair_loss import PairLossConfig, Places, fine_tune, identity_start
 from service.ml.pair_whitening import (
@@ -31,6 +32,7 @@ from service.ml.pair_whitening import (
     fused_inputs,
 )
 from service.ml.pipeline import embed_vectors
+from service.ml.retrained_impostors import ProbeRefit
 from service.ml.training import TrainingData
 
 HELD_OUT_BLOCKS = 10  # pairs are cut into this many blocks in order; held out: every 5th
@@ -44,10 +46,42 @@ class NoUsefulPairs(ValueError):
 
 @dataclass
 class AdaptationResult:
+    """The adapted heads, the whitening folded into them, the gate's verdict and figures, and
+    ``impostor_refit``: the same fit without an impostor probe's held-out frames, which the
+    version's impostor model is refitted with (its score must not call a query's impostors
+    rarer than they are)."""
+
     heads: LoopNetHeads
     whitening: PairWhitening
     gate: dict[str, Any]
     metrics: dict[str, Any]
+    impostor_refit: ProbeRefit
+
+
+def probe_refit(
+    base: HeadsConfig,
+    differences: np.ndarray,
+    config: PairWhiteningConfig,
+    *,
+    whiten: bool = True,
+    tune: Callable[[PairWhitening], PairWhitening] | None = None,
+) -> ProbeRefit:
+    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``;
+    ``whiten`` False: the centred input; ``tune``: the same loss steps on the result), on the
+    probe's frames but those it held out: the learned whitening decorrelates the atlas's
+    frames, so with them in the fit the probe's held-out frames would look as orthogonal as
+    stored ones, and wrong matches would score as rarer than they are."""
+
+    def refit(probe: ImpostorProbe) -> LoopNetHeads:
+        inputs = fused_inputs(base, probe.local_branch, probe.global_branch)
+        seen = inputs if probe.held is None else inputs[~probe.held]
+        if whiten:
+            start = PairWhitening.fit_differences(seen, differences, config)
+        else:
+            start = identity_start(seen, len(differences))
+        return fold_into_heads(base, start if tune is None else tune(start))
+
+    return refit
 
 
 def split_pairs(count: int, share: float = HELD_OUT_SHARE) -> tuple[np.ndarray, np.ndarray]:
@@ -151,8 +185,9 @@ def adapt_heads(
 
     whitening = start_from(train)
     tuned: dict[str, Any] = {}
+    repeat: Callable[[PairWhitening], PairWhitening] | None = None
     if pair_loss is not None:
-        whitening, tuned = tune_on_pairs(
+        whitening, tuned, repeat = tune_on_pairs(
             inputs, whitening, start_from, data, train, window, pair_loss
         )
     heads = fold_into_heads(base, whitening)
@@ -177,7 +212,9 @@ def adapt_heads(
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
-    return AdaptationResult(heads, whitening, gate, metrics)
+    differences = inputs[train[:, 0]] - inputs[train[:, 1]]
+    refit = probe_refit(base, differences, config, whiten=whiten, tune=repeat)
+    return AdaptationResult(heads, whitening, gate, metrics, refit)
 
 
 def tune_on_pairs(
@@ -188,14 +225,15 @@ def tune_on_pairs(
     train: np.ndarray,
     window: int,
     config: PairLossConfig,
-) -> tuple[PairWhitening, dict[str, Any]]:
+) -> tuple[PairWhitening, dict[str, Any], Callable[[PairWhitening], PairWhitening] | None]:
     """:func:`fine_tune` ``start`` (fitted on every training pair) for as many steps as a run
     on whole blocks of them, started from ``start_from`` those blocks and stopped early on the
     rest (their mean reciprocal rank, as the gate scores pairs), found best. Too few pairs to
-    split, or no step helped: ``start``."""
+    split, or no step helped: ``start``. Also returns how to repeat the kept steps from another
+    start (None when none were kept), for :func:`probe_refit`."""
     fit_idx, stop_idx = split_pairs(len(train))
     if len(stop_idx) == 0:
-        return start, {"pair_loss_steps": 0}
+        return start, {"pair_loss_steps": 0}, None
     codes, rank, _ = data.sequence
     places = Places(codes, rank, window)
     stop = train[stop_idx]
@@ -210,6 +248,11 @@ def tune_on_pairs(
     steps = int(trial.metrics["pair_loss_best_step"])
     metrics = {f"{name}_trial": value for name, value in trial.metrics.items()}
     if steps == 0:
-        return start, {**metrics, "pair_loss_steps": 0}
-    final = fine_tune(inputs, start, train, places, None, replace(config, steps=steps))
-    return final.transform, {**metrics, **final.metrics}
+        return start, {**metrics, "pair_loss_steps": 0}, None
+    kept = replace(config, steps=steps)
+
+    def repeat(other: PairWhitening) -> PairWhitening:
+        return fine_tune(inputs, other, train, places, None, kept).transform
+
+    final = fine_tune(inputs, start, train, places, None, kept)
+    return final.transform, {**metrics, **final.metrics}, repeat

@@ -346,7 +346,7 @@ def _impostor_probe(
     )
     if len(first) >= MIN_PAIRS:
         local, global_ = probe.branches_of_raw(local_raw, has_local, inputs.global_vectors)
-        return ImpostorProbe(local, global_, first, second, in_sample=False)
+        return ImpostorProbe(local, global_, first, second, in_sample=False, held=held)
     first, second = impostor_pairs(
         inputs.robots, order, pairs=config.impostor_pairs, seed=config.seed
     )

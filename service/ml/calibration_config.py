@@ -114,7 +114,9 @@ class ImpostorProbe:
 
     Every pair's ``first`` frame was held out of the whitenings that made these branches and
     its ``second`` was not, as a query meets stored frames; ``in_sample``: an atlas too small
-    for that, whose pairs are in-sample pairs of the calibrated branches.
+    for that, whose pairs are in-sample pairs of the calibrated branches. ``held``: the mask
+    of frames held out of the probe's fit (None when in-sample), which heads fitted on the
+    atlas must not see either.
     """
 
     local_branch: np.ndarray
@@ -122,6 +124,7 @@ class ImpostorProbe:
     first: np.ndarray
     second: np.ndarray
     in_sample: bool
+    held: np.ndarray | None = None
 
 
 @dataclass

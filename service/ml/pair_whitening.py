@@ -74,10 +74,24 @@ class PairWhitening:
     ) -> PairWhitening:
         """Fit on ``n x dim`` vectors (the atlas's frames) and ``P x 2`` row indices of
         matching pairs into them (``P >= 1``)."""
+        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+        x = np.asarray(vectors, np.float64)
+        return cls.fit_differences(x, x[pairs[:, 0]] - x[pairs[:, 1]], config)
+
+    @classmethod
+    def fit_differences(
+        cls,
+        vectors: np.ndarray,
+        differences: np.ndarray,
+        config: PairWhiteningConfig | None = None,
+    ) -> PairWhitening:
+        """Fit on ``n x dim`` atlas frames and ``P x dim`` differences of matching pairs (which
+        need not be among ``vectors``: an impostor probe refits on the frames it has not held
+        out, with the job's pairs)."""
         config = config or PairWhiteningConfig()
         x = np.asarray(vectors, np.float64)
-        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-        if len(pairs) == 0:
+        differences = np.asarray(differences, np.float64)
+        if len(differences) == 0:
             raise ValueError("learned whitening needs at least one pair")
         if len(x) < 2:
             raise ValueError(f"learned whitening needs at least 2 vectors, got {len(x)}")
@@ -86,7 +100,7 @@ class PairWhitening:
         # frames than coordinates, work in that span (exactly the same cosines, far cheaper)
         basis = _span(x - mean)
         x = (x - mean) @ basis
-        differences = x[pairs[:, 0]] - x[pairs[:, 1]]
+        differences = differences @ basis
         intra = differences.T @ differences / len(differences)
         gamma = ledoit_wolf_shrinkage(differences) if config.shrinkage is None else config.shrinkage
         target = np.trace(intra) / len(intra)
@@ -106,7 +120,7 @@ class PairWhitening:
             mean=mean.astype(np.float32),
             projection=np.ascontiguousarray(projection, np.float32),
             shrinkage=float(gamma),
-            pairs=int(len(pairs)),
+            pairs=int(len(differences)),
         )
 
     def transform(self, vectors: np.ndarray) -> np.ndarray:

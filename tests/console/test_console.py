@@ -9,6 +9,7 @@ under docs/screenshots/ (the README shows them).
 from __future__ import annotations
 
 import csv
+import itertools
 import os
 import shutil
 from collections.abc import Iterator
@@ -275,6 +276,53 @@ def test_operator_retrains_watches_progress_and_rolls_back(console: Console) -> 
     page.close()
 
 
+def test_operator_labels_lists_and_deletes_revisit_pairs(console: Console) -> None:
+    with console.client("operator") as loopnet:  # the closures test's observation gave one
+        observed = loopnet.list_pairs(ATLAS)
+    assert [p.source for p in observed] == ["observe"]
+    page = console.page("operator")
+    page.click("nav a[data-page=pairs]")
+    page.wait_for_selector(f"[data-testid=pair-{observed[0].id}]")
+    thumbnails_loaded(page, "[data-testid=pairs] img")
+    a, b = console.frames[0], console.frames[25]
+    page.fill("[data-testid=label-pair] input[name=frame_id]", str(a))
+    page.fill("[data-testid=label-pair] input[name=other_frame_id]", str(b))
+    page.click("[data-testid=label-pair] button")
+    page.wait_for_selector("[data-testid=pairs-notice]:has-text('labelled')")
+    with console.client("operator") as loopnet:
+        labelled = [p for p in loopnet.list_pairs(ATLAS) if p.source == "operator"]
+    assert [(p.frame_id, p.other_frame_id) for p in labelled] == [(a, b)]
+    row = page.wait_for_selector(f"[data-testid=pair-{labelled[0].id}]")
+    assert "operator" in (row.text_content() or "") and f"frame {a}" in (row.text_content() or "")
+    thumbnails_loaded(page, "[data-testid=pairs] img")
+    shoot(page, "pairs")
+    for frames, expected in (((b, a), "409: frames"), ((a, 10**6), "404: ")):  # API errors shown
+        page.fill("[data-testid=label-pair] input[name=frame_id]", str(frames[0]))
+        page.fill("[data-testid=label-pair] input[name=other_frame_id]", str(frames[1]))
+        page.click("[data-testid=label-pair] button")
+        page.wait_for_selector(f"[data-testid=pairs-error] [role=alert]:has-text('{expected}')")
+    page.once("dialog", lambda dialog: dialog.accept())
+    page.click(f"[data-testid=pair-{labelled[0].id}] [data-testid=delete-pair]")
+    page.wait_for_selector(f"[data-testid=pair-{labelled[0].id}]", state="detached")
+    page.click("[data-testid=adapt-button]")  # one pair left: the API refuses, and says why
+    refused = page.wait_for_selector("[data-testid=pairs-error] [role=alert]:has-text('422')")
+    assert "1 revisit pair(s)" in (refused.text_content() or ""), refused.text_content()
+    assert "adaptation needs at least 10" in (refused.text_content() or "")
+    with console.client("operator") as loopnet:
+        assert [p.id for p in loopnet.list_pairs(ATLAS)] == [observed[0].id]
+        assert all(job.kind != "adapt" for job in loopnet.list_jobs(ATLAS))
+        # enough labelled pairs (right or not): the page queues the job
+        for first, second in list(itertools.combinations(ROUTE["husky-1"], 2))[:9]:
+            loopnet.label_pair(ATLAS, console.frames[first], console.frames[second])
+    page.click("[data-testid=adapt-button]")
+    queued = page.wait_for_selector("[data-testid=adapt-queued]").text_content() or ""
+    with console.client("operator") as loopnet:
+        job = loopnet.wait_job(ATLAS, int(queued.split()[2]), timeout=120)
+    assert job.kind == "adapt" and job.status in ("succeeded", "failed"), job
+    assert job.message.startswith("model version") or "usable revisit pair" in job.message, job
+    page.close()
+
+
 def test_admin_creates_and_revokes_a_key(console: Console) -> None:
     page = console.page("admin")
     page.click("nav a[data-page=keys]")
@@ -301,13 +349,19 @@ def test_admin_creates_and_revokes_a_key(console: Console) -> None:
 def test_a_robot_key_sees_no_operator_or_admin_controls(console: Console) -> None:
     page = console.page("robot")
     page.wait_for_selector(f"[data-testid=atlas-row-{ATLAS}]")
-    assert page.is_hidden("nav a[data-page=jobs]") and page.is_hidden("nav a[data-page=keys]")
+    for link in ("jobs", "pairs", "keys"):
+        assert page.is_hidden(f"nav a[data-page={link}]")
     assert page.locator("[data-testid=create-atlas]").count() == 0
-    for hidden in ("jobs", "keys"):  # typed in by hand, the page falls back to the atlases
+    for hidden in ("jobs", "pairs", "keys"):  # typed in by hand, the page falls back to the atlases
         page.goto(f"{console.url}/#/{hidden}")
         page.wait_for_selector(f"[data-testid=atlas-row-{ATLAS}]")
         assert page.get_attribute("#page", "data-page") == "atlases"
-        assert page.locator("[data-testid=start-job], [data-testid=create-key]").count() == 0
+        assert (
+            page.locator(
+                "[data-testid=start-job], [data-testid=create-key], [data-testid=label-pair]"
+            ).count()
+            == 0
+        )
     shoot(page, "robot-view")
     page.close()
     assert console.errors == []  # no script error on any page

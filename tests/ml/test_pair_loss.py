@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from service.ml.adaptation import adapt_heads, pair_scores
+from service.ml.calibration_config import ImpostorProbe
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.pair_loss import (
     PairLossConfig,
@@ -143,3 +144,27 @@ def test_config_rejects_nonsense() -> None:
         PairLossConfig(temperature=0)
     with pytest.raises(ValueError, match="negatives"):
         PairLossConfig(negatives=0)
+
+
+def test_the_impostor_probe_refit_repeats_the_kept_loss_steps() -> None:
+    """A probe that holds nothing out refits the version itself: the same whitening, then the
+    same steps of the loss (without them, its impostor model would score another space)."""
+    data, pairs = revisits(seed=2)
+    active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
+    result = adapt_heads(
+        data,
+        pairs,
+        active,
+        PairWhiteningConfig(),
+        window=0,
+        whiten=False,
+        pair_loss=PairLossConfig(learning_rate=0.01, anchor=0.1),
+    )
+    assert result.metrics["pair_loss_steps"] > 0
+    probe = ImpostorProbe(data.local, data.global_, np.zeros(0), np.zeros(0), in_sample=True)
+    refit = result.impostor_refit(probe)
+    x, y = torch.from_numpy(data.local), torch.from_numpy(data.global_)
+    with torch.no_grad():
+        np.testing.assert_allclose(refit.embed(x, y), result.heads.embed(x, y), atol=1e-5)
+        untuned = adapt_heads(data, pairs, active, PairWhiteningConfig(), window=0, whiten=False)
+        assert not np.allclose(untuned.heads.embed(x, y), result.heads.embed(x, y), atol=1e-3)

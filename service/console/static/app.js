@@ -6,6 +6,7 @@ import atlas from "./pages/atlas.js";
 import closures from "./pages/closures.js";
 import query from "./pages/query.js";
 import jobs from "./pages/jobs.js";
+import pairs from "./pages/pairs.js";
 import keys from "./pages/keys.js";
 
 const ROLES = { robot: 1, operator: 2, admin: 3 };
@@ -15,6 +16,7 @@ const PAGES = {
   closures: { render: closures, role: "robot" },
   query: { render: query, role: "robot" },
   jobs: { render: jobs, role: "operator" },
+  pairs: { render: pairs, role: "operator" },
   keys: { render: keys, role: "admin" },
 };
 

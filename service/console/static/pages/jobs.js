@@ -31,6 +31,7 @@ export default async function render(container) {
     if (!jobs.length) return h("p", { class: "muted" }, "No jobs yet.");
     return table([
       ["#", (j) => j.id],
+      ["Kind", (j) => j.kind],
       ["Status", (j) => h("span", { class: `badge ${j.status === "succeeded" ? "ok" : j.status === "failed" ? "bad" : ACTIVE.has(j.status) ? "warn" : ""}`, "data-testid": "job-status" }, j.status)],
       ["Progress", (j) => h("div", {}, h("div", { class: "progress" }, h("div", { style: `width:${j.progress}%` })),
         h("span", { class: "muted", "data-testid": "job-progress" }, `${Math.round(j.progress)}%`))],

@@ -1,0 +1,259 @@
+"""The *pairs* protocol: adaptation from the pairs the service's own ``observe`` verified.
+
+The revisit protocol (:mod:`service.evaluation.adaptation_pass`) hands the adaptation its pairs
+from the ground truth. Here the service finds them, as it does for a fleet: K query-condition
+frames per revisited submap (the revisit protocols' shots) are observed, as served (default
+verification and decision), by a second robot asking about the map's frames, into the service
+pass's calibrated atlas. Every verified closure ``observe`` records is a revisit pair, right or
+wrong; the ground truth only counts how many were right. A real ``adapt`` job (job runner, the
+job's default parameters) learns from them and its gate decides. The remaining queries are
+answered as served, anonymously, before (the pass's served answers) and after, once the
+observed frames are deleted again (so over the map's frames only, as before): ``after`` with
+the job's version (activated for the measurement when the gate kept it back), ``served`` with
+whichever version the gate left active. The atlas is then put back (the starting version
+active), so each K starts from the same atlas and the later passes see none of it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from service.app.catalog import AtlasService
+from service.app.ingest import FrameFields
+from service.app.revisit_pairs import pair_frames
+from service.domain.pairs import PairFilter
+from service.evaluation.datasets import Dataset
+from service.evaluation.protocol import MethodResult
+from service.evaluation.retraining_pass import _subset, query_submaps, revisit_shots
+from service.evaluation.served_pass import (
+    PARTS,
+    ServedAnswers,
+    _stored,
+    served_answers,
+    served_method,
+    served_settings,
+)
+from service.jobs.retraining import JobRunner
+from service.ml.features import FrameFeatures
+from service.storage import jobs
+from service.storage import repository as repo
+from service.storage.db import transaction
+
+PROTOCOL = "pairs-observe"
+REVISIT_ROBOT = "revisits"
+
+
+@dataclass
+class ObservedPairs:
+    """One K: what ``observe`` recorded, what the job made of it, the answers before and after.
+
+    Attributes:
+        observed: query indices observed (K per revisited submap).
+        test: the other query indices, the test queries.
+        statuses: the observations' answers by status (``loop``, ``new_place``, ...).
+        pairs: ``P x 2`` (query index, reference index) of the pairs observe recorded.
+        right: per pair, whether the reference is a right one for the query (ground truth).
+        job: the adapt job's status, message, version, whether it was activated, its metrics.
+        before: the test queries as served on the starting atlas.
+        after: the test queries with the job's version; None when the job made none.
+    """
+
+    shots: int
+    observed: np.ndarray
+    test: np.ndarray
+    statuses: dict[str, int]
+    pairs: np.ndarray
+    right: np.ndarray
+    job: dict[str, Any]
+    before: ServedAnswers
+    after: ServedAnswers | None = None
+
+    @property
+    def activated(self) -> bool:
+        return bool(self.job.get("activated"))
+
+    @property
+    def served(self) -> ServedAnswers:
+        """What the service answers once the job is done: its version when the gate activated
+        it, else the one it started from."""
+        return self.after if self.activated and self.after is not None else self.before
+
+
+def observed_pairs_runs(
+    service: AtlasService,
+    *,
+    atlas: str,
+    dataset: Dataset,
+    submap_of: Sequence[int],
+    queries: Sequence[FrameFeatures],
+    frame_to_reference: dict[int, int],
+    before: ServedAnswers,
+    k: int,
+    shots: Sequence[int],
+) -> list[ObservedPairs]:
+    """One run of the protocol per K, each from the atlas as it was (``before``: the pass's
+    served answers to every query on it)."""
+    extractor = service.pipeline.preset.local.name
+    revisited = query_submaps(dataset, submap_of)
+    runs = []
+    for k_shots in shots:
+        observed = revisit_shots(revisited, k_shots)
+        test = np.setdiff1d(np.arange(len(queries)), observed)
+        with service.sessions() as session:
+            found = repo.get_atlas(session, name=atlas)
+            atlas_id, starting = found.id, repo.active_model_version(session, atlas_id=found.id)
+            starting_version = starting.version
+        submaps = sorted({f"revisit-{int(revisited[q]):05d}" for q in observed})
+        for submap in submaps:
+            service.create_submap(atlas, submap)
+        query_of: dict[int, int] = {}
+        statuses: Counter[str] = Counter()
+        try:
+            with served_settings(service, extractor):
+                for q in observed:
+                    fields = FrameFields(
+                        f"revisit-{int(revisited[q]):05d}", REVISIT_ROBOT, timestamp=float(q)
+                    )
+                    answer, frame = service.observe_features(
+                        atlas_name=atlas,
+                        fields=fields,
+                        features=replace(queries[q], local=_stored(queries[q].local)),
+                        k=k,
+                        query_filter=service.query_filter(
+                            robot_id=REVISIT_ROBOT, robots="others", timestamp=float(q)
+                        ),
+                    )
+                    query_of[frame.id] = int(q)
+                    statuses[answer.status] += 1
+            with service.sessions() as session:
+                recorded = pair_frames(
+                    session, atlas_id=atlas_id, where=PairFilter(robots=(REVISIT_ROBOT,))
+                )
+            pairs = np.array(
+                [(query_of[a], frame_to_reference.get(b, -1)) for a, b in recorded], np.int64
+            ).reshape(-1, 2)
+            right = np.array([ref in dataset.queries[q].positives for q, ref in pairs], dtype=bool)
+            job = _adapt(service, atlas_id)
+            # the test queries ask as before, anonymously, the map's frames only: the observed
+            # frames go once the job has learned from them (an asking robot would also bring
+            # its own trajectory into the decision)
+            _delete(service, atlas, submaps)
+            after = None
+            if job["version"] is not None:
+                if not job["activated"]:  # measured with the job's version all the same
+                    service.activate_version(atlas, job["version"])
+                service.catch_up()
+                after = served_answers(
+                    service, [queries[q] for q in test], frame_to_reference, k, atlas, extractor
+                )
+        finally:  # the atlas as it was: the starting version, no observed frame or pair
+            service.activate_version(atlas, starting_version)
+            _delete(service, atlas, submaps)
+            service.catch_up()
+        runs.append(
+            ObservedPairs(
+                k_shots,
+                observed,
+                test,
+                dict(statuses),
+                pairs,
+                right,
+                job,
+                before.subset(test),
+                after,
+            )
+        )
+    return runs
+
+
+def _delete(service: AtlasService, atlas: str, submaps: list[str]) -> None:
+    """The observed frames' submaps with their frames and pairs (those still there)."""
+    with service.sessions() as session:
+        found = repo.get_atlas(session, name=atlas)
+        there = {s.name for s, _ in repo.list_submaps_with_counts(session, atlas=found)}
+    for submap in submaps:
+        if submap in there:
+            service.delete_submap(atlas, submap)
+
+
+def _adapt(service: AtlasService, atlas_id: int) -> dict[str, Any]:
+    """An ``adapt`` job with the job's default parameters, run by the job runner."""
+    with transaction(service.sessions) as session:
+        job_id = jobs.create_job(session, atlas_id=atlas_id, kind="adapt", params={}).id
+    JobRunner(service.settings, service.sessions).run(job_id)
+    with service.sessions() as session:
+        job = jobs.get_job(session, job_id=job_id)
+        metrics = dict(job.metrics)
+        return {
+            "status": job.status,
+            "message": job.message,
+            "version": job.model_version,
+            "activated": bool(metrics.get("activated", False)),
+            "gate": metrics.get("held_out"),
+            "metrics": {k: v for k, v in metrics.items() if k not in ("held_out",)},
+        }
+
+
+def observed_pairs_rows(
+    run: ObservedPairs, dataset: Dataset, submap_of: Sequence[int], label: str
+) -> tuple[list[MethodResult], dict[str, Any]]:
+    """The run's served rows on the test queries (before, after, served) and its report row."""
+    subset = _subset(dataset, run.test)
+    name = f"{PROTOCOL}-k{run.shots}"
+    methods = {
+        "before": served_method(
+            f"{name}-before",
+            f"{label} (as served) before",
+            run.before,
+            subset,
+            submap_of,
+        )
+    }
+    if run.after is not None:
+        methods["after"] = served_method(
+            f"{name}-after",
+            f"{label} adapted from {len(run.pairs)} pairs observe verified ({run.shots}/submap)",
+            run.after,
+            subset,
+            submap_of,
+        )
+    served = methods["after"] if run.activated and "after" in methods else methods["before"]
+    row = {
+        "protocol": PROTOCOL,
+        "shots": run.shots,
+        "observed": len(run.observed),
+        "statuses": run.statuses,
+        "pairs": len(run.pairs),
+        "pairs_right": int(run.right.sum()),
+        "test_queries": len(run.test),
+        "job": run.job,
+        "served": "adapted" if served is not methods["before"] else "starting",
+        **{
+            f"{key}_{side}": value
+            for side, method in (*methods.items(), ("served", served))
+            for key, value in _figures(method).items()
+        },
+    }
+    return list(methods.values()), row
+
+
+def _figures(method: MethodResult) -> dict[str, float]:
+    """R@1, R@100%P and the wrong best answers' median score excess (the decision's score
+    part: calibrated score - log10 of the atlas's frames; NaN where no wrong answer had one)."""
+    parts = np.asarray(method.details["per_query_parts"], np.float64).reshape(-1, len(PARTS))
+    right = np.asarray(method.details["per_query_right"], bool)
+    wrong_scores = parts[~right, PARTS.index("score")]
+    wrong_scores = wrong_scores[np.isfinite(wrong_scores)]
+    return {
+        "recall@1": method.recall[1],
+        "recall_at_100_precision": method.recall_at_full_precision,
+        "wrong_score_median": float(np.median(wrong_scores)) if len(wrong_scores) else float("nan"),
+    }
+
+
+__all__ = ["PROTOCOL", "ObservedPairs", "observed_pairs_rows", "observed_pairs_runs"]

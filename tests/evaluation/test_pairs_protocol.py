@@ -1,0 +1,159 @@
+"""The pairs protocol (issue 26) on a real slice of Gardens Point (40 places, DISK at 256):
+query-condition frames observed through the service as served, the pairs observe itself
+verified given to a real adapt job, the other queries answered before and after; and the
+atlas put back as it was for the passes that follow."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.app.catalog import AtlasService
+from service.evaluation.datasets import load_dataset
+from service.evaluation.pairs_pass import (
+    ObservedPairs,
+    observed_pairs_rows,
+    observed_pairs_runs,
+)
+from service.evaluation.protocol import assign_submaps
+from service.evaluation.runner import EvalConfig, run_evaluation
+from service.evaluation.served_pass import PARTS, ServedAnswers
+from service.evaluation.service_pass import ATLAS, run_service_pass
+from service.ml.features import FrameFeatures
+from service.storage import repository as repo
+from service.storage.models import Frame, RevisitPair, Submap
+from tests.conftest import DATA_DIR, TEST_LONG_SIDE, TEST_MAX_KEYPOINTS
+
+PLACES = 40  # 8 submaps of 5: 3 shots a submap give the job enough verified pairs
+COHOG = DATA_DIR / "gardenspoint_cohog200"
+
+
+def _atlas_state(service: AtlasService) -> dict[str, Any]:
+    with service.sessions() as session:
+        atlas = repo.get_atlas(session, name=ATLAS)
+        return {
+            "frames": session.query(Frame).filter_by(atlas_id=atlas.id).count(),
+            "submaps": session.query(Submap).filter_by(atlas_id=atlas.id).count(),
+            "pairs": session.query(RevisitPair).count(),
+            "active": repo.active_model_version(session, atlas_id=atlas.id).version,
+        }
+
+
+@pytest.fixture(scope="module")
+def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    dataset = load_dataset(COHOG, tolerance=2).head(PLACES)
+    submap_of, _ = assign_submaps(dataset, 5)
+    states: dict[str, Any] = {}
+
+    def probe(
+        service: AtlasService,
+        queries: list[FrameFeatures],
+        frame_to_reference: dict[int, int],
+        served: ServedAnswers,
+    ) -> list[Any]:
+        states["before"] = _atlas_state(service)
+        runs = observed_pairs_runs(
+            service,
+            atlas=ATLAS,
+            dataset=dataset,
+            submap_of=submap_of,
+            queries=queries,
+            frame_to_reference=frame_to_reference,
+            before=served,
+            k=10,
+            shots=(3, 1),
+        )
+        states["after"] = _atlas_state(service)
+        states["served"] = served
+        return list(runs)
+
+    result = run_service_pass(
+        dataset,
+        submap_of,
+        pipeline,
+        k=10,
+        cache_dir=tmp_path_factory.mktemp("cache"),
+        label="disk",
+        calibration={},
+        serve=True,
+        in_atlas=probe,
+    )
+    return dataset, submap_of, result, states
+
+
+@pytest.mark.slow
+def test_observe_records_the_pairs_and_a_real_job_learns_from_them(protocol_run) -> None:  # type: ignore[no-untyped-def]
+    dataset, submap_of, result, states = protocol_run
+    runs: list[ObservedPairs] = result.in_atlas
+    assert [run.shots for run in runs] == [3, 1]
+    queries = len(dataset.queries)
+    for run in runs:  # K observed frames per submap, the others are the test queries
+        assert len(run.observed) == run.shots * (PLACES // 5)
+        assert sorted([*run.observed, *run.test]) == list(range(queries))
+        assert sum(run.statuses.values()) == len(run.observed)
+        # the pairs are observe's own: one per verified closure, judged by the ground truth
+        assert set(run.pairs[:, 0]) <= set(run.observed) and (run.pairs[:, 1] >= 0).all()
+        truth = [ref in dataset.queries[q].positives for q, ref in run.pairs]
+        assert run.right.tolist() == truth
+        assert run.statuses.get("loop", 0) <= len(run.pairs) <= len(run.observed)
+        # before: the pass's served answers to the same test queries
+        served = states["served"].subset(run.test)
+        assert (run.before.ranking.indices == served.ranking.indices).all()
+    many, few = runs
+    assert len(many.pairs) >= 10 and len(few.pairs) < 10
+    assert many.job["status"] == "succeeded" and many.job["version"] is not None
+    assert many.job["message"].startswith(f"model version {many.job['version']} ")
+    assert many.after is not None and len(many.after.ranking.indices) == len(many.test)
+    # asked anonymously, as before: no robot's sequence enters the decision
+    assert np.isnan(many.after.parts[:, PARTS.index("sequence")]).all()
+    assert (many.served is many.after) == many.activated
+    assert few.job["status"] == "failed" and "usable revisit pair" in few.job["message"]
+    assert few.after is None and few.served is few.before
+    # the atlas as it was: no observed frame, pair or submap, the starting version active
+    assert states["after"] == states["before"] and states["before"]["pairs"] == 0
+
+
+@pytest.mark.slow
+def test_the_rows_report_before_after_and_served(protocol_run) -> None:  # type: ignore[no-untyped-def]
+    dataset, submap_of, result, _ = protocol_run
+    many = result.in_atlas[0]
+    methods, row = observed_pairs_rows(many, dataset, submap_of, "LoopNet DISK")
+    assert [m.name for m in methods] == ["pairs-observe-k3-before", "pairs-observe-k3-after"]
+    for method in methods:
+        assert method.kind == "served" and method.query_ms["n"] == len(many.test)
+    assert row["pairs"] == len(many.pairs) and row["pairs_right"] == int(many.right.sum())
+    assert row["test_queries"] == len(many.test) and row["observed"] == len(many.observed)
+    side = "after" if many.activated else "before"
+    assert row["served"] == ("adapted" if many.activated else "starting")
+    for key in ("recall@1", "recall_at_100_precision", "wrong_score_median"):
+        assert row[f"{key}_served"] == row[f"{key}_{side}"] or np.isnan(row[f"{key}_served"])
+    assert 0.0 <= row["recall@1_after"] <= 1.0 and 0.0 <= row["recall@1_before"] <= 1.0
+
+
+@pytest.mark.slow
+def test_loopnet_eval_writes_the_pairs_protocol(tmp_path: Path) -> None:
+    config = EvalConfig(
+        dataset=COHOG,
+        output=tmp_path / "report",
+        tolerance=2,
+        long_side=TEST_LONG_SIDE,
+        max_keypoints=TEST_MAX_KEYPOINTS,
+        limit=20,
+        extractors=("disk",),
+        alphas=(),
+        baselines=(),
+        examples=1,
+        adapt_observe_shots=(1,),
+    )
+    run_evaluation(config)
+    report = json.loads((config.output / "report.json").read_text())
+    (row,) = report["observed_pairs"]
+    assert row["protocol"] == "pairs-observe" and row["shots"] == 1
+    assert "pairs-observe-k1-before" in [m["name"] for m in report["methods"]]
+    markdown = (config.output / "report.md").read_text()
+    assert "## Adaptation from the pairs observe verified" in markdown
+    assert f"| 1 | {row['observed']} (" in markdown

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from service.ml.adaptation import adapt_heads, pair_scores
+from service.ml.adaptation import AdaptationResult, adapt_heads, pair_scores
 from service.ml.calibration_config import ImpostorProbe
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.pair_loss import (
@@ -107,19 +107,20 @@ def test_a_run_that_finds_nothing_returns_its_start() -> None:
     assert result.metrics["pair_loss_steps"] == PairLossConfig().check_every * 4
 
 
+def adapted(seed: int, whiten: bool) -> tuple[TrainingData, np.ndarray, AdaptationResult]:
+    """:func:`revisits` adapted from untrained heads with the loss (window 0: one frame a place)."""
+    data, pairs = revisits(seed=seed)
+    active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
+    config = PairLossConfig(learning_rate=0.01, anchor=0.1)
+    result = adapt_heads(
+        data, pairs, active, PairWhiteningConfig(), window=0, whiten=whiten, pair_loss=config
+    )
+    return data, pairs, result
+
+
 @pytest.mark.parametrize("whiten", [False, True])
 def test_the_adapt_methods_with_the_loss_pass_the_gate(whiten: bool) -> None:
-    data, pairs = revisits(seed=1)
-    active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
-    result = adapt_heads(
-        data,
-        pairs,
-        active,
-        PairWhiteningConfig(),
-        window=0,
-        whiten=whiten,
-        pair_loss=PairLossConfig(learning_rate=0.01, anchor=0.1),
-    )
+    data, _, result = adapted(seed=1, whiten=whiten)
     assert result.gate["pairs_not_worse"] and result.gate["change"] > 0.2
     assert result.metrics["pair_loss_steps_trial"] > 0
     # the whitening alone ranks every validation pair first here: the loss has nothing to add
@@ -149,17 +150,8 @@ def test_config_rejects_nonsense() -> None:
 def test_the_impostor_probe_refit_repeats_the_kept_loss_steps() -> None:
     """A probe that holds nothing out refits the version itself: the same whitening, then the
     same steps of the loss (without them, its impostor model would score another space)."""
-    data, pairs = revisits(seed=2)
+    data, pairs, result = adapted(seed=2, whiten=False)
     active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
-    result = adapt_heads(
-        data,
-        pairs,
-        active,
-        PairWhiteningConfig(),
-        window=0,
-        whiten=False,
-        pair_loss=PairLossConfig(learning_rate=0.01, anchor=0.1),
-    )
     assert result.metrics["pair_loss_steps"] > 0
     probe = ImpostorProbe(data.local, data.global_, np.zeros(0), np.zeros(0), in_sample=True)
     refit = result.impostor_refit(probe)

@@ -4,6 +4,9 @@ build of every frame, on synthetic calibrated branches of the real size.
 
     OMP_NUM_THREADS=1 python benchmarks/adaptation.py --frames 10000 --pairs 1000 --threads 1
 
+``--method`` as the job's (default: the job's default, whitening+pairs: the learned whitening,
+then the listwise loss over the pairs of :mod:`service.ml.pair_loss`).
+
 The atlas is one robot's route of ``frames - pairs`` frames plus ``pairs`` frames of a second
 robot revisiting evenly spaced places under a shifted condition (a random offset shared by the
 revisits plus noise), each paired with the frame it revisits. Vector generation is not timed;
@@ -19,8 +22,10 @@ import numpy as np
 import torch
 
 from service.index import AtlasIndex
+from service.jobs.adaptation_config import ADAPT_METHODS, DEFAULT_METHOD, AdaptConfig
 from service.ml.adaptation import adapt_heads
 from service.ml.heads import HeadsConfig, LoopNetHeads
+from service.ml.pair_loss import PairLossConfig
 from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.pipeline import embed_vectors
 from service.ml.training import TrainingData
@@ -55,12 +60,18 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=1_000)
     parser.add_argument("--dims", type=int, default=512, help="per branch (the calibrated size)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--method", default=DEFAULT_METHOD, choices=ADAPT_METHODS)
+    parser.add_argument("--rank", type=int, help="of the loss's change (default: full)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     data, pairs = synthetic(args.frames, args.pairs, args.dims)
     active = LoopNetHeads(HeadsConfig(local_dim=args.dims, global_dim=args.dims)).eval()
     start, start_cpu = time.perf_counter(), time.process_time()
-    result = adapt_heads(data, pairs, active, PairWhiteningConfig())
+    job = AdaptConfig(method=args.method)
+    loss = PairLossConfig(rank=args.rank) if job.trains_on_pairs else None
+    result = adapt_heads(
+        data, pairs, active, PairWhiteningConfig(), whiten=job.whitens, pair_loss=loss
+    )
     adapted = time.perf_counter()
     index = AtlasIndex(result.heads.config.fused_dim)
     embeddings = embed_vectors(result.heads, data.local, data.global_)
@@ -74,7 +85,8 @@ def main() -> None:
         f"{result.metrics['gate_seconds']:.1f} s, re-embedding + index "
         f"{time.perf_counter() - adapted:.1f} s; total {wall:.1f} s wall, {cpu:.1f} s CPU. "
         f"Held-out pairs {gate['pairs']}: partner first {gate['active']} -> {gate['new']} "
-        f"(shrinkage {result.metrics['shrinkage']})"
+        f"(shrinkage {result.metrics['shrinkage']}); {args.method}: "
+        + ", ".join(f"{k} {v}" for k, v in result.metrics.items() if k.startswith("pair_loss"))
     )
 
 

@@ -33,6 +33,7 @@ def _csv_list(kind: type, text: str) -> tuple:  # type: ignore[type-arg]
 
 def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     from service.evaluation.datasets import LAYOUTS
+    from service.jobs.adaptation_config import ADAPT_METHODS, DEFAULT_METHOD
 
     ev = commands.add_parser(
         "eval",
@@ -111,6 +112,13 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "--adapt-shrinkage",
         type=float,
         help="the adapt job's shrinkage of the pairs' covariance (default: Ledoit-Wolf's)",
+    )
+    ev.add_argument(
+        "--adapt-method",
+        default=DEFAULT_METHOD,
+        choices=ADAPT_METHODS,
+        help="the adapt job's method: the learned whitening, then a listwise loss over the "
+        "pairs (whitening+pairs), or the loss alone (pairs)",
     )
     ev.add_argument(
         "--verify",
@@ -257,6 +265,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         retrain_params=_named_values(args.retrain_param),
         adapt_shots=_csv_list(int, args.adapt_shots),
         adapt_shrinkage=args.adapt_shrinkage,
+        adapt_method=args.adapt_method,
         adapt_observe_shots=_csv_list(int, args.adapt_pairs_from_observe),
         adapt_labelled_shots=_csv_list(int, args.adapt_pairs_labelled),
         verify=_csv_list(str, args.verify),

@@ -30,8 +30,10 @@ from service.evaluation.retraining_pass import (
     shot_data,
 )
 from service.evaluation.service_pass import PassResult
+from service.jobs.adaptation_config import DEFAULT_METHOD, METHOD_TEXT, AdaptConfig, AdaptMethod
 from service.ml.adaptation import adapt_heads
 from service.ml.heads import LoopNetHeads
+from service.ml.pair_loss import PairLossConfig
 from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.pipeline import embed_vectors
 
@@ -56,10 +58,14 @@ def adaptation_rows(
     *,
     shots: Sequence[int],
     config: PairWhiteningConfig | None = None,
+    method: AdaptMethod = DEFAULT_METHOD,
+    pair_loss: PairLossConfig | None = None,
     k: int = 10,
     extractor_label: str = "DISK",
 ) -> list[RetrainingRow]:
-    """One adapted model per K (revisit pairs per submap), from ``start``."""
+    """One adapted model per K (revisit pairs per submap), from ``start``, by the adapt job's
+    ``method`` (``pair_loss``: its loss's settings when the method trains on the pairs)."""
+    steps = AdaptConfig(method=method)
     ref_local, ref_global = start.references
     query_local, query_global = start.queries
     ref_submaps = np.asarray(submap_of, dtype=np.int64)
@@ -72,7 +78,14 @@ def adaptation_rows(
         query_shots, test, data = shot_data(start, ref_submaps, revisited, k_shots)
         pairs = np.stack([n_refs + np.arange(len(query_shots)), partners[query_shots]], axis=1)
         adapted = adapt_heads(
-            data, pairs, active, config or PairWhiteningConfig(), min_pairs=2, window=2
+            data,
+            pairs,
+            active,
+            config or PairWhiteningConfig(),
+            min_pairs=2,
+            window=2,
+            whiten=steps.whitens,
+            pair_loss=(pair_loss or PairLossConfig()) if steps.trains_on_pairs else None,
         )
         heads = adapted.heads
         started = time.perf_counter()
@@ -87,8 +100,8 @@ def adaptation_rows(
         right = correct_matrix(ranking, [q.positives for q in subset.queries])[:, 0]
         after = evaluate_ranking(
             f"adapted-revisit-k{k_shots}",
-            f"LoopNet {extractor_label} adapted: learned whitening from {len(pairs)} revisit "
-            f"pairs ({k_shots}/submap)",
+            f"LoopNet {extractor_label} adapted: {METHOD_TEXT[method]} ({len(pairs)} revisit "
+            f"pairs, {k_shots}/submap)",
             "adapted",
             ranking,
             subset,

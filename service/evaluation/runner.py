@@ -67,6 +67,7 @@ from service.evaluation.verification_pass import (
     subsample_queries,
     verification_methods,
 )
+from service.jobs.adaptation_config import DEFAULT_METHOD, AdaptMethod
 from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
 from service.ml.features import FrameFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
@@ -150,6 +151,7 @@ class EvalConfig:
     retrain_params: dict[str, Any] = field(default_factory=dict)
     adapt_shots: tuple[int, ...] = ()
     adapt_shrinkage: float | None = None
+    adapt_method: AdaptMethod = DEFAULT_METHOD
     adapt_observe_shots: tuple[int, ...] = ()
     adapt_labelled_shots: tuple[int, ...] = ()
     command: str = ""
@@ -470,6 +472,7 @@ def adapted_rows(
         StartingPoint.of(first_pass, before, calibrated_start),
         shots=config.adapt_shots,
         config=PairWhiteningConfig(shrinkage=config.adapt_shrinkage),
+        method=config.adapt_method,
         k=config.k,
         extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
     )

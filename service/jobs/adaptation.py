@@ -2,7 +2,8 @@
 
 The pairs (verified closures ``observe`` recorded and operator-labelled ones, chosen by robot,
 time and submap) give a learned whitening of the fused input (:mod:`service.ml.adaptation`),
-folded into heads over the active calibration's branches. The not-worse gate compares it with
+fine-tuned with a listwise loss over the pairs when the job's method says so
+(:mod:`service.ml.pair_loss`), folded into heads over the active calibration's branches. The not-worse gate compares it with
 the active version on held-out pairs and held-out stretches; a version that is worse is kept
 but not activated (unless ``retrain_activate_worse``), and the job's message gives the gain it
 found, or says it found none. A job without enough usable pairs is refused with the reason.
@@ -17,9 +18,11 @@ import numpy as np
 from service.app import model_versions as models_store
 from service.app.revisit_pairs import pair_frames
 from service.index.builder import load_model_inputs
+from service.jobs.adaptation_config import METHOD_TEXT
 from service.jobs.adaptation_config import AdaptConfig as AdaptConfig
 from service.ml.active_model import ActiveModel
 from service.ml.adaptation import NoUsefulPairs, adapt_heads
+from service.ml.pair_loss import PairLossConfig
 from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.training import TrainingCancelled, TrainingData
 from service.storage import jobs
@@ -49,7 +52,7 @@ def run_adaptation(
     data = TrainingData(
         stored.local, stored.global_, stored.submaps, stored.ids, np.asarray(stored.robots)
     )
-    runner._progress(job_id, 10, f"learning a whitening from {len(pairs)} pairs")
+    runner._progress(job_id, 10, f"{METHOD_TEXT[config.method]}: {len(pairs)} pairs")
     result = adapt_heads(
         data,
         pairs,
@@ -57,6 +60,8 @@ def run_adaptation(
         PairWhiteningConfig(config.shrinkage, config.max_dims),
         window=config.window,
         min_pairs=config.min_pairs,
+        whiten=config.whitens,
+        pair_loss=PairLossConfig() if config.trains_on_pairs else None,
     )
     gate = result.gate
     activate = gate["not_worse"] or runner.settings.retrain_activate_worse
@@ -84,7 +89,7 @@ def run_adaptation(
         models_store.VersionConfig(
             result.heads.config,
             trained=True,
-            training={"adapt": params, "method": "learned whitening from revisit pairs"},
+            training={"adapt": params, "method": METHOD_TEXT[config.method]},
             job_id=job_id,
             calibration=version_calibration,
         ),

@@ -4,16 +4,34 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Literal
 
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from service.domain.pairs import PairFilter
 
+AdaptMethod = Literal["whitening", "whitening+pairs", "pairs"]
+ADAPT_METHODS: tuple[AdaptMethod, ...] = ("whitening", "whitening+pairs", "pairs")
+DEFAULT_METHOD: AdaptMethod = "whitening+pairs"
+METHOD_TEXT = {
+    "whitening": "learned whitening from revisit pairs",
+    "whitening+pairs": "learned whitening, then a listwise loss over the pairs",
+    "pairs": "a listwise loss over the pairs from the calibrated input",
+}
+
 
 @pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class AdaptConfig:
-    """Parameters of one adaptation job: which pairs, and how the whitening is regularised."""
+    """Parameters of one adaptation job: which pairs, how the whitening is regularised, and
+    whether a listwise loss over the pairs fine-tunes it."""
+
+    method: AdaptMethod = Field(
+        default=DEFAULT_METHOD,
+        description="whitening: the closed-form learned whitening; whitening+pairs: then "
+        "fine-tuned with a listwise loss over the pairs, hard negatives from the atlas; "
+        "pairs: the loss alone, from the calibrated input.",
+    )
 
     robots: tuple[str, ...] = Field(
         default=(), description="Only pairs with a frame of one of these robots; empty: all."
@@ -44,3 +62,13 @@ class AdaptConfig:
 
     def pair_filter(self) -> PairFilter:
         return PairFilter(self.robots, self.submaps, self.since, self.until)
+
+    @property
+    def whitens(self) -> bool:
+        """Whether the learned whitening is fitted (else the loss starts from the input)."""
+        return self.method != "pairs"
+
+    @property
+    def trains_on_pairs(self) -> bool:
+        """Whether the listwise loss over the pairs fine-tunes the start."""
+        return self.method != "whitening"

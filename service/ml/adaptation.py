@@ -4,7 +4,8 @@ What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit row
 
 1. the pairs are split into training pairs and held-out pairs (whole blocks of them, in the
    order they were recorded: neighbouring pairs of one drive are near-copies of each other);
-2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs, and
+2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs
+   (optionally fine-tuned with a listwise loss over them, :mod:`service.ml.pair_loss`), and
    folded into heads over the same branches (:func:`fold_into_heads`);
 3. the not-worse gate compares the active and the new heads on the held-out pairs (each side
    of a pair ranks every atlas frame but its own neighbourhood; right: the other side or its
@@ -14,7 +15,8 @@ What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit row
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,6 +24,7 @@ import numpy as np
 from service.ml.calibration_config import ImpostorProbe
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.held_out import HELD_OUT_SHARE, compare_on_held_out, split_for_job
+from service.ml.pair_loss import PairLossConfig, Places, fine_tune, identity_start
 from service.ml.pair_whitening import (
     PairWhitening,
     PairWhiteningConfig,
@@ -56,17 +59,27 @@ class AdaptationResult:
 
 
 def probe_refit(
-    base: HeadsConfig, differences: np.ndarray, config: PairWhiteningConfig
+    base: HeadsConfig,
+    differences: np.ndarray,
+    config: PairWhiteningConfig,
+    *,
+    whiten: bool = True,
+    tune: Callable[[PairWhitening], PairWhitening] | None = None,
 ) -> ProbeRefit:
-    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``),
-    on the probe's frames but those it held out: the learned whitening decorrelates the
-    atlas's frames, so with them in the fit the probe's held-out frames would look as
-    orthogonal as stored ones, and wrong matches would score as rarer than they are."""
+    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``;
+    ``whiten`` False: the centred input; ``tune``: the same loss steps on the result), on the
+    probe's frames but those it held out: the learned whitening decorrelates the atlas's
+    frames, so with them in the fit the probe's held-out frames would look as orthogonal as
+    stored ones, and wrong matches would score as rarer than they are."""
 
     def refit(probe: ImpostorProbe) -> LoopNetHeads:
         inputs = fused_inputs(base, probe.local_branch, probe.global_branch)
         seen = inputs if probe.held is None else inputs[~probe.held]
-        return fold_into_heads(base, PairWhitening.fit_differences(seen, differences, config))
+        if whiten:
+            start = PairWhitening.fit_differences(seen, differences, config)
+        else:
+            start = identity_start(seen, len(differences))
+        return fold_into_heads(base, start if tune is None else tune(start))
 
     return refit
 
@@ -139,11 +152,15 @@ def adapt_heads(
     window: int = 2,
     min_pairs: int = 10,
     held_out_pairs: np.ndarray | None = None,
+    whiten: bool = True,
+    pair_loss: PairLossConfig | None = None,
 ) -> AdaptationResult:
     """Fit a learned whitening on ``data`` (the active version's branch inputs of every atlas
     frame) and ``pairs`` (``P x 2`` row indices), fold it into heads, and gate them against
     ``active`` (the heads serving now). ``held_out_pairs``: which pairs judge (None: whole
-    blocks of them, :func:`split_pairs`)."""
+    blocks of them, :func:`split_pairs`). ``whiten`` False starts from the centred input;
+    ``pair_loss`` set fine-tunes the start on the training pairs (:mod:`service.ml.pair_loss`),
+    stopping early on whole blocks of them kept out of the loss."""
     started = time.perf_counter()
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     base = active.config
@@ -160,7 +177,19 @@ def adapt_heads(
         train, held = pairs[train_idx], pairs[held_idx]
     else:
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
-    whitening = PairWhitening.fit(inputs, train, config)
+
+    def start_from(chosen: np.ndarray) -> PairWhitening:
+        if whiten:
+            return PairWhitening.fit(inputs, chosen, config)
+        return identity_start(inputs, len(chosen))
+
+    whitening = start_from(train)
+    tuned: dict[str, Any] = {}
+    repeat: Callable[[PairWhitening], PairWhitening] | None = None
+    if pair_loss is not None:
+        whitening, tuned, repeat = tune_on_pairs(
+            inputs, whitening, start_from, data, train, window, pair_loss
+        )
     heads = fold_into_heads(base, whitening)
     fit_seconds = time.perf_counter() - started
     pairs_gate = compare_on_pairs(active, heads, data, held, window)
@@ -180,8 +209,51 @@ def adapt_heads(
         "frames": int(len(data.submaps)),
         "shrinkage": round(whitening.shrinkage, 4),
         "dim": whitening.dim,
+        **tuned,
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
     differences = inputs[train[:, 0]] - inputs[train[:, 1]]
-    return AdaptationResult(heads, whitening, gate, metrics, probe_refit(base, differences, config))
+    refit = probe_refit(base, differences, config, whiten=whiten, tune=repeat)
+    return AdaptationResult(heads, whitening, gate, metrics, refit)
+
+
+def tune_on_pairs(
+    inputs: np.ndarray,
+    start: PairWhitening,
+    start_from: Callable[[np.ndarray], PairWhitening],
+    data: TrainingData,
+    train: np.ndarray,
+    window: int,
+    config: PairLossConfig,
+) -> tuple[PairWhitening, dict[str, Any], Callable[[PairWhitening], PairWhitening] | None]:
+    """:func:`fine_tune` ``start`` (fitted on every training pair) for as many steps as a run
+    on whole blocks of them, started from ``start_from`` those blocks and stopped early on the
+    rest (their mean reciprocal rank, as the gate scores pairs), found best. Too few pairs to
+    split, or no step helped: ``start``. Also returns how to repeat the kept steps from another
+    start (None when none were kept), for :func:`probe_refit`."""
+    fit_idx, stop_idx = split_pairs(len(train))
+    if len(stop_idx) == 0:
+        return start, {"pair_loss_steps": 0}, None
+    codes, rank, _ = data.sequence
+    places = Places(codes, rank, window)
+    stop = train[stop_idx]
+    trial = fine_tune(
+        inputs,
+        start_from(train[fit_idx]),
+        train[fit_idx],
+        places,
+        lambda embedded: pair_scores(embedded, data, stop, window)[1],
+        config,
+    )
+    steps = int(trial.metrics["pair_loss_best_step"])
+    metrics = {f"{name}_trial": value for name, value in trial.metrics.items()}
+    if steps == 0:
+        return start, {**metrics, "pair_loss_steps": 0}, None
+    kept = replace(config, steps=steps)
+
+    def repeat(other: PairWhitening) -> PairWhitening:
+        return fine_tune(inputs, other, train, places, None, kept).transform
+
+    final = fine_tune(inputs, start, train, places, None, kept)
+    return final.transform, {**metrics, **final.metrics}, repeat

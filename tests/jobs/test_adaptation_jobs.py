@@ -110,6 +110,8 @@ def test_observed_pairs_train_an_adaptation_through_the_worker(
         and metrics["training_pairs"] + metrics["held_out_pairs"] == PLACES
     )
     assert metrics["held_out"]["pairs"] == metrics["held_out_pairs"] > 0
+    # the default method: the whitening, then the listwise loss (a trial run chose its length)
+    assert metrics["pair_loss_steps_trial"] > 0 and "pair_loss_steps" in metrics
     assert "held-out pairs" in job["message"]
     assert job["message"].startswith("model version 2 ")
     assert progress == sorted(progress)
@@ -135,6 +137,10 @@ def test_a_job_without_useful_pairs_is_refused_with_its_reason(app_client: TestC
         "least 10 (verified closures recorded by observe, or labelled pairs)"
     )
     assert [v["version"] for v in client.get("/v1/atlases/campus/models").json()] == [1]
+    unknown = client.post(
+        "/v1/atlases/campus/jobs", json={"kind": "adapt", "adaptation": {"method": "magic"}}
+    )
+    assert unknown.status_code == 422 and "whitening+pairs" in unknown.text
 
 
 def bearer(token: str) -> dict[str, str]:

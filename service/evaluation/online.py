@@ -29,6 +29,7 @@ from service.evaluation.metrics import precision_recall, summary
 from service.evaluation.online_features import trajectory_local, trajectory_vectors
 from service.evaluation.online_report import write_report
 from service.evaluation.online_served import (
+    SWEEPS,
     served_decisions,
     served_observations,
     served_replay,
@@ -285,8 +286,8 @@ def _served_row(
     config: OnlineConfig, extractor: str, pipeline: FeaturePipeline, length: int
 ) -> dict[str, Any]:
     """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept over the loop
-    probability by :func:`replay` (k=1, and with the protocol's consistency), plus the
-    operating point at the defaults and the jobs run during the replay."""
+    probability by :func:`replay` (k=1, and with the protocol's consistency; ``sweeps`` adds
+    the same over the decision's logit), plus the operating point at the defaults and the jobs run during the replay."""
     trajectory = config.trajectory
     features = trajectory_vectors(trajectory, pipeline, config.cache_dir)
     local = trajectory_local(trajectory, pipeline, config.cache_dir)
@@ -299,15 +300,16 @@ def _served_row(
         exclude_recent=config.exclude_recent,
         consistency=config.consistency,
     )
-    observations = [Observation(*answer) for answer in served_observations(served)]
     vectors = unit_embeddings(features, pipeline.preset.alpha)
-    row = replay(trajectory, vectors, _settings(config, length), observations)
+    row: dict[str, Any] = {"method": f"loopnet-{extractor}-served"}
+    for score in SWEEPS:
+        observations = [Observation(*a) for a in served_observations(served, score)]
+        swept = replay(trajectory, vectors, _settings(config, length), observations)
+        if score == "decision.loop_probability":
+            row.update(swept)
+        row.setdefault("sweeps", {})[score] = swept["decisions"]
     row["latency_note"] = (
         "the observe call as served (search, sequence, verification, decision); CNNs and the "
         "jobs run between frames not included"
     )
-    return {
-        "method": f"loopnet-{extractor}-served",
-        **row,
-        **served_decisions(trajectory, served, config.exclude_recent),
-    }
+    return {**row, **served_decisions(trajectory, served, config.exclude_recent)}

@@ -27,15 +27,16 @@ def write_report(report: dict[str, Any], output: Path) -> None:
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in report["rows"]:
-        swept = row.get("score") or ("cosine" if row["settings"]["length"] == 1 else "margin")
-        for decision in row["decisions"].values():
-            lines.append(
-                f"| {row['method']} | {row['settings']['length']} | "
-                f"{decision['consistency_required']} | {swept} | "
-                f"{decision['best_match_right']:.3f} | "
-                f"{decision['auc_pr']:.3f} | {decision['recall_at_100_precision']:.3f} | "
-                f"{row['latency_ms']['median']:.2f} | {row['latency_ms']['p95']:.2f} |"
-            )
+        swept = "cosine" if row["settings"]["length"] == 1 else "margin"
+        for score, decisions in (row.get("sweeps") or {swept: row["decisions"]}).items():
+            for decision in decisions.values():
+                lines.append(
+                    f"| {row['method']} | {row['settings']['length']} | "
+                    f"{decision['consistency_required']} | {score} | "
+                    f"{decision['best_match_right']:.3f} | "
+                    f"{decision['auc_pr']:.3f} | {decision['recall_at_100_precision']:.3f} | "
+                    f"{row['latency_ms']['median']:.2f} | {row['latency_ms']['p95']:.2f} |"
+                )
     served = [row for row in report["rows"] if "operating_point" in row]
     if served:
         lines += _operating_points(served)

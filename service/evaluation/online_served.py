@@ -26,6 +26,7 @@ from service.evaluation.online_service import frame_times, observe_frame, replay
 from service.evaluation.served_pass import (
     PARTS,
     answered_frames,
+    decision_logit,
     decision_parts,
     loop_counts,
     loop_probability,
@@ -66,11 +67,12 @@ class JobRun:
 @dataclass
 class ServedReplay:
     """Per frame, in order: the frame index answered first (-1: none), its loop probability
-    (0 without a decision), status, decision parts (NaN: absent), sequence length used, the
+    (0 without a decision) and the decision's logit (-inf without one), status, decision parts (NaN: absent), sequence length used, the
     model version that answered and the call's milliseconds; then the jobs run meanwhile."""
 
     references: list[int] = field(default_factory=list)
     probability: list[float] = field(default_factory=list)
+    logits: list[float] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
     parts: list[list[float]] = field(default_factory=list)
     lengths: list[int] = field(default_factory=list)
@@ -126,6 +128,7 @@ def served_replay(
             first = answered_frames(answer)
             out.references.append(index_of.get(first[0], -1) if first else -1)
             out.probability.append(loop_probability(answer))
+            out.logits.append(decision_logit(answer))
             out.status.append(answer.status)
             out.parts.append(decision_parts(answer))
             out.lengths.append(answer.sequence.length if answer.sequence is not None else 1)
@@ -157,14 +160,19 @@ def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
     )
 
 
-def served_observations(served: ServedReplay) -> list[tuple[int, float, int, float]]:
-    """``(reference, loop probability, length, ms)`` per frame, the retrieval rows' shape, so
-    one sweep (:func:`service.evaluation.online.replay`) scores both; no answer: -inf."""
+SWEEPS = {"decision.loop_probability": "probability", "decision logit": "logits"}
+
+
+def served_observations(
+    served: ServedReplay, score: str = "decision.loop_probability"
+) -> list[tuple[int, float, int, float]]:
+    """``(reference, score, length, ms)`` per frame, the retrieval rows' shape, so one sweep
+    (:func:`service.evaluation.online.replay`) scores both; no answer: -inf. ``score``: one of
+    ``SWEEPS`` (the logit orders what the rounded probability ties at 1.0)."""
+    scores = getattr(served, SWEEPS[score])
     return [
         (r, p if r >= 0 else -np.inf, n, ms)
-        for r, p, n, ms in zip(
-            served.references, served.probability, served.lengths, served.ms, strict=True
-        )
+        for r, p, n, ms in zip(served.references, scores, served.lengths, served.ms, strict=True)
     ]
 
 
@@ -186,6 +194,7 @@ def served_decisions(
         "per_frame": {
             "reference": served.references,
             "loop_probability": np.round(served.probability, 4).tolist(),
+            "logit": np.round(served.logits, 3).tolist(),
             "status": served.status,
             "right": right.astype(int).tolist(),
             "model_version": served.versions,

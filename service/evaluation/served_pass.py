@@ -26,6 +26,7 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.jobs.retraining import JobRunner
+from service.ml.decision import logit
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import jobs
 from service.storage.models import Job
@@ -145,6 +146,16 @@ def loop_probability(answer: QueryResult) -> float:
     if decision is None or decision.loop_probability is None:
         return 0.0
     return float(decision.loop_probability)
+
+
+def decision_logit(answer: QueryResult) -> float:
+    """The decision model's logit of the answer's parts (-inf without a decision): ordered as
+    ``loop_probability`` but neither rounded nor saturated at 1.0, so a sweep can still order
+    the answers the rounded probability ties."""
+    decision = answer.decision
+    if decision is None or decision.loop_probability is None:
+        return -np.inf
+    return logit(decision.parts)
 
 
 def decision_parts(answer: QueryResult) -> list[float]:

@@ -112,4 +112,3 @@ def trajectory_local(
         if local_cache is not None:
             local_cache.save(cached)
     return [cached[p.resolve()] for p in trajectory.images]
-

@@ -210,9 +210,7 @@ def operating_point(served: ServedAnswers, dataset: Dataset) -> dict[str, float 
     """What the service answers at its defaults (:func:`loop_counts`), per query."""
     positives = [q.positives for q in dataset.queries]
     right = correct_matrix(served.ranking, positives)[:, 0]
-    return loop_counts(
-        served.status, right, sum(1 for p in positives if p), served.threshold
-    )
+    return loop_counts(served.status, right, sum(1 for p in positives if p), served.threshold)
 
 
 def loop_counts(

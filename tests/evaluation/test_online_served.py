@@ -75,7 +75,17 @@ def test_served_replay_calibrates_at_the_milestone_and_answers_calibrated(tmp_pa
     assert point["threshold"] == 0.98
     # every night frame (the first run) has no loop partner: none of them is answered right
     assert not right[:10].any() and served["answerable"] == 9
-    assert 0.0 <= served["decisions"]["k=1"]["recall_at_100_precision"] <= 1.0
+    sweeps = served["sweeps"]
+    assert set(sweeps) == {"decision.loop_probability", "decision logit"}
+    assert sweeps["decision.loop_probability"] == served["decisions"]
+    # the logit orders the answers as the probability does: the same best matches, both sweeps
+    for k in ("k=1", "k=3"):
+        assert (
+            sweeps["decision logit"][k]["best_match_right"]
+            == served["decisions"][k]["best_match_right"]
+        )
+    by_logit = np.array(frames["loop_probability"])[np.argsort(frames["logit"], kind="stable")]
+    assert np.all(np.diff(by_logit) >= -1e-4)
 
     written = json.loads((tmp_path / "report" / "online.json").read_text())
     assert written["rows"][1]["jobs"][0]["milestone"] == 16

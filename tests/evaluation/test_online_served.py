@@ -91,3 +91,45 @@ def test_served_replay_calibrates_at_the_milestone_and_answers_calibrated(tmp_pa
     assert written["rows"][1]["jobs"][0]["milestone"] == 16
     markdown = (tmp_path / "report" / "online.md").read_text()
     assert "## At the service's defaults" in markdown and "| calibrate | 16 | 15 |" in markdown
+
+
+def test_eval_online_command_slices_and_reports_the_served_row(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``loopnet eval-online DATASET --limit 20 --served 5``: the first 20 summer frames and
+    the winter frames whose revisits lie in them; the first milestone (16) runs in the replay,
+    the second (32) once the winter run has made the atlas 32 frames large."""
+    from service.cli import main
+
+    out = tmp_path / "out"
+    argv = [
+        "eval-online",
+        str(DATA_DIR / "nordland_64x32"),
+        "--tolerance",
+        "1",
+        "--preset",
+        "fast",
+        "--long-side",
+        str(TEST_LONG_SIDE),
+        "--alphas",
+        "0.7",
+        "--sequence",
+        "",
+        "--served",
+        "5",
+        "--limit",
+        "20",
+        "--exclude-recent",
+        "5",
+        "--cache-dir",
+        str(tmp_path / "cache"),
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    report = json.loads((out / "online.json").read_text())
+    [served] = report["rows"]
+    assert served["method"] == "loopnet-xfeat-served" and served["frames"] == 41
+    assert [(j["milestone"], j["frame"], j["status"]) for j in served["jobs"]] == [
+        (16, 15, "succeeded"),
+        (32, 31, "succeeded"),
+    ]
+    assert "| loopnet-xfeat-served | 5 | 0.98 |" in capsys.readouterr().out

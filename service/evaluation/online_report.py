@@ -45,14 +45,11 @@ def write_report(report: dict[str, Any], output: Path) -> None:
 
 
 def _operating_points(rows: list[dict[str, Any]]) -> list[str]:
-    lines = [
-        "",
-        "## At the service's defaults (status `loop`)",
-        "",
-        "| method | L | threshold | loops | precision | recall | false loops | per 1,000 frames "
-        "| right answers called new_place |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
+    lines = _section(
+        "At the service's defaults (status `loop`)",
+        "method | L | threshold | loops | precision | recall | false loops | per 1,000 frames "
+        "| right answers called new_place",
+    )
     for row in rows:
         point = row["operating_point"]
         lines.append(
@@ -65,17 +62,13 @@ def _operating_points(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _jobs(rows: list[dict[str, Any]]) -> list[str]:
-    lines = [
-        "",
-        "## Jobs run during the served replays",
-        "",
+    lines = _section(
+        "Jobs run during the served replays",
+        "method | L | job | milestone | after frame | status | version | frames fitted "
+        "| min inliers | seconds",
         "A frame whose insert reached a calibration milestone queued the job; it ran before the "
         "next frame, which the new model version answered.",
-        "",
-        "| method | L | job | milestone | after frame | status | version | frames fitted "
-        "| min inliers | seconds |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
+    )
     for row in rows:
         for job in row["jobs"]:
             lines.append(
@@ -87,3 +80,16 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
         if not row["jobs"]:
             lines.append(f"| {row['method']} | {row['settings']['length']} | none | | | | | | | |")
     return lines
+
+
+def _section(title: str, columns: str, note: str = "") -> list[str]:
+    """A Markdown section's heading, optional note and table header (``a | b | c``)."""
+    count = len(columns.split("|"))
+    return [
+        "",
+        f"## {title}",
+        "",
+        *([note, ""] if note else []),
+        f"| {columns} |",
+        "|" + " --- |" * count,
+    ]

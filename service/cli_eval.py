@@ -180,6 +180,16 @@ def add_online_parser(commands: argparse._SubParsersAction) -> None:  # type: ig
     on.add_argument("--exclude-recent", type=int, default=20)
     on.add_argument("--consistency", type=int, default=3, help="agreeing observations (k)")
     on.add_argument("--cache-dir", type=Path, help="feature cache (loopnet eval's)")
+    on.add_argument(
+        "--served",
+        default="10",
+        help="sequence lengths of the loopnet-<extractor>-served rows: the service's defaults "
+        "(verification, loop_probability, calibration at its milestones during the replay); "
+        "'' for none",
+    )
+    on.add_argument(
+        "--limit", type=int, help="DATASET: only the first N map frames and their revisits"
+    )
     on.set_defaults(func=cmd_eval_online)
 
 
@@ -196,6 +206,8 @@ def cmd_eval_online(args: argparse.Namespace) -> int:
         trajectory = trajectory_from_matrix(args.images, args.ground_truth, args.variable)
     elif args.dataset is not None:
         dataset = load_dataset(args.dataset, layout="traversals", tolerance=args.tolerance)
+        if args.limit:
+            dataset = dataset.head(args.limit)
         trajectory = trajectory_from_traversals(dataset)
     else:
         raise SystemExit("give a traversals DATASET, or --images and --ground-truth")
@@ -216,6 +228,7 @@ def cmd_eval_online(args: argparse.Namespace) -> int:
         cache_dir=args.cache_dir,
         exclude_recent=args.exclude_recent,
         consistency=args.consistency,
+        served_lengths=_csv_list(int, args.served),
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     run_online(config)

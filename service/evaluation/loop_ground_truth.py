@@ -31,6 +31,9 @@ class Trajectory:
         loops: for each frame, the earlier frames it closes a loop with.
         starts: frames that start a new run (after a pause: no sequence spans one).
         ground_truth: how ``loops`` were decided, in words.
+        root: the dataset folder the frames come from (it keys the feature cache, so a
+            two-traversal trajectory reads the file ``loopnet eval`` wrote for the dataset);
+            None: the first image's folder.
     """
 
     name: str
@@ -38,6 +41,14 @@ class Trajectory:
     loops: list[frozenset[int]]
     starts: np.ndarray
     ground_truth: str
+    root: Path | None = None
+
+    def answerable(self, exclude_recent: int) -> int:
+        """Frames with a loop partner older than the robot's ``exclude_recent`` last frames
+        (the recall's denominator: only those can be answered right)."""
+        return sum(
+            1 for t, loops in enumerate(self.loops) if any(j < t - exclude_recent for j in loops)
+        )
 
 
 def read_loop_closure_matrix(path: Path, variable: str | None = None) -> np.ndarray:
@@ -114,4 +125,5 @@ def trajectory_from_traversals(dataset: Dataset) -> Trajectory:
             f"{dataset.name}: map traversal ({n_refs} frames) then query traversal "
             f"({len(dataset.queries)} frames) as one robot's trajectory; {dataset.ground_truth}"
         ),
+        root=Path(dataset.root),
     )

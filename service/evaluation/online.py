@@ -17,22 +17,26 @@ at 100% precision, with and without temporal consistency, and per-frame latency 
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from service.evaluation.datasets import Dataset, ReferenceFrame
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.metrics import precision_recall, summary
+from service.evaluation.online_features import trajectory_local, trajectory_vectors
+from service.evaluation.online_report import write_report
+from service.evaluation.online_served import (
+    SWEEPS,
+    served_decisions,
+    served_observations,
+    served_replay,
+)
 from service.evaluation.online_service import service_observations
-from service.evaluation.service_pass import CACHE_ARRAYS, CachedFeatures, cache_path, file_stamp
+from service.evaluation.service_pass import CachedFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
-from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.sequences import (
     ConsistencySettings,
@@ -133,58 +137,6 @@ def observe(state: OnlineMap, frame: int) -> Observation:
     return Observation(matches[0].reference, distinct.margin, matches[0].length, ms)
 
 
-def trajectory_vectors(
-    trajectory: Trajectory, pipeline: FeaturePipeline, cache_dir: Path | None
-) -> CachedFeatures:
-    """Every frame's stored vectors, from the evaluation's feature cache when it holds them
-    (a two-traversal trajectory reuses the file ``loopnet eval`` wrote for that dataset)."""
-    as_dataset = Dataset(
-        name=trajectory.name.removesuffix("-single-trajectory"),
-        layout="trajectory",
-        root=trajectory.images[0].parent,
-        references=[ReferenceFrame(p, str(i), i) for i, p in enumerate(trajectory.images)],
-        queries=[],
-        ground_truth=trajectory.ground_truth,
-    )
-    path = cache_path(cache_dir, as_dataset, pipeline) if cache_dir else None
-    cached = CachedFeatures.load(path) if path is not None else None
-    if cached is not None:
-        rows = cached.rows()
-        order = [rows.get(image.resolve()) for image in trajectory.images]
-        if all(row is not None for row in order):
-            take = np.array(order, np.int64)
-            return CachedFeatures(**{name: getattr(cached, name)[take] for name in CACHE_ARRAYS})
-    local, global_, keypoints, sizes, stages = [], [], [], [], []
-    for image in tqdm(trajectory.images, desc=f"features: {trajectory.name}", unit="img"):
-        start = time.perf_counter()
-        rgb = decode_image(image.read_bytes())
-        decode_ms = (time.perf_counter() - start) * 1000.0
-        features = pipeline.extract(rgb)
-        local.append(features.local_vector)
-        global_.append(features.global_vector)
-        keypoints.append(features.local.count)
-        sizes.append(features.image_size)
-        stages.append(
-            [
-                decode_ms,
-                features.timings_ms["local_features"],
-                features.timings_ms["global_features"],
-            ]
-        )
-    fresh = CachedFeatures(
-        paths=np.array([str(p.resolve()) for p in trajectory.images]),
-        stamps=np.array([file_stamp(p) for p in trajectory.images], np.int64),
-        local=np.stack(local),
-        global_=np.stack(global_),
-        keypoints=np.array(keypoints, np.int64),
-        image_size=np.array(sizes, np.int64),
-        stage_ms=np.array(stages, np.float64),
-    )
-    if path is not None:
-        (cached.merged(fresh) if cached is not None else fresh).save(path)
-    return fresh
-
-
 def replay(
     trajectory: Trajectory,
     vectors: np.ndarray,
@@ -202,11 +154,7 @@ def replay(
     correct = np.array(
         [o.reference in loops for o, loops in zip(observations, trajectory.loops, strict=True)]
     )
-    answerable = sum(
-        1
-        for t, loops in enumerate(trajectory.loops)
-        if any(j < t - settings.exclude_recent for j in loops)
-    )
+    answerable = trajectory.answerable(settings.exclude_recent)
     rows: dict[str, Any] = {}
     consistency = settings.consistency
     for required in sorted({1, consistency.required}):
@@ -246,38 +194,17 @@ def unit_embeddings(features: CachedFeatures, alpha: float) -> np.ndarray:
     return embed_vectors(heads, features.local, features.global_)
 
 
-def write_report(report: dict[str, Any], output: Path) -> None:
-    output.mkdir(parents=True, exist_ok=True)
-    (output / "online.json").write_text(json.dumps(report, indent=2, default=str))
-    lines = [
-        f"# Online single-trajectory replay: {report['trajectory']}",
-        "",
-        f"Command: `{report['command']}`",
-        "",
-        f"- Ground truth: {report['ground_truth']}",
-        f"- Features: {report['features']}",
-        "",
-        "| method | L | consistency k | best match right | AUC-PR | R@100%P | latency median ms | p95 ms |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    for row in report["rows"]:
-        for decision in row["decisions"].values():
-            lines.append(
-                f"| {row['method']} | {row['settings']['length']} | "
-                f"{decision['consistency_required']} | {decision['best_match_right']:.3f} | "
-                f"{decision['auc_pr']:.3f} | {decision['recall_at_100_precision']:.3f} | "
-                f"{row['latency_ms']['median']:.2f} | {row['latency_ms']['p95']:.2f} |"
-            )
-    (output / "online.md").write_text("\n".join(lines) + "\n")
-
-
 @dataclass(frozen=True)
 class OnlineConfig:
     """One replay run: the trajectory, the features and the settings swept.
 
     Attributes:
-        methods: (name, extractor, alpha) of each descriptor replayed.
-        lengths: sequence lengths L (1 = single frame).
+        methods: (name, extractor, alpha) of each descriptor replayed (retrieval rows:
+            untrained heads, no verification, no calibration).
+        lengths: sequence lengths L of the retrieval rows (1 = single frame).
+        served_lengths: sequence lengths L of the ``loopnet-<extractor>-served`` rows (one per
+            extractor and L: the service's defaults, calibration at the milestones during the
+            replay; :mod:`service.evaluation.online_served`).
     """
 
     trajectory: Trajectory
@@ -290,29 +217,30 @@ class OnlineConfig:
     exclude_recent: int = 20
     consistency: int = 3
     command: str = ""
+    served_lengths: tuple[int, ...] = (10,)
 
 
 def run_online(config: OnlineConfig) -> dict[str, Any]:
-    """Replay the trajectory once per method and L; write online.json and online.md."""
+    """Replay the trajectory once per method and L, then once per extractor and served L as
+    served; write online.json and online.md."""
     from service.ml.presets import resolve_preset
 
     rows = []
     features_text = []
+    pipelines: dict[str, FeaturePipeline] = {}
     for name, extractor, alpha in config.methods:
-        preset = resolve_preset(config.preset, extractor=extractor, long_side=config.long_side)
-        pipeline = FeaturePipeline(preset)
+        if extractor not in pipelines:
+            preset = resolve_preset(config.preset, extractor=extractor, long_side=config.long_side)
+            pipelines[extractor] = FeaturePipeline(preset)
+        pipeline = pipelines[extractor]
         features = trajectory_vectors(config.trajectory, pipeline, config.cache_dir)
         vectors = unit_embeddings(features, alpha)
         features_text.append(
-            f"{name}: {extractor} at long side {preset.local.long_side} + "
-            f"{preset.backbone.name}, untrained heads at alpha {alpha:g}"
+            f"{name}: {extractor} at long side {pipeline.preset.local.long_side} + "
+            f"{pipeline.preset.backbone.name}, untrained heads at alpha {alpha:g}"
         )
         for length in config.lengths:
-            settings = OnlineSettings(
-                length=length,
-                exclude_recent=config.exclude_recent,
-                consistency=ConsistencySettings(required=config.consistency),
-            )
+            settings = _settings(config, length)
             answers = service_observations(
                 config.trajectory,
                 features,
@@ -326,6 +254,14 @@ def run_online(config: OnlineConfig) -> dict[str, Any]:
             rows.append(
                 {"method": name, **replay(config.trajectory, vectors, settings, observations)}
             )
+    for extractor, pipeline in pipelines.items():
+        if config.served_lengths:
+            features_text.append(
+                f"loopnet-{extractor}-served: the service's defaults (alpha "
+                f"{pipeline.preset.alpha:g}, verification, decision, calibration at milestones)"
+            )
+        for length in config.served_lengths:
+            rows.append(_served_row(config, extractor, pipeline, length))
     report = {
         "command": config.command,
         "trajectory": config.trajectory.name,
@@ -336,3 +272,44 @@ def run_online(config: OnlineConfig) -> dict[str, Any]:
     }
     write_report(report, config.output)
     return report
+
+
+def _settings(config: OnlineConfig, length: int) -> OnlineSettings:
+    return OnlineSettings(
+        length=length,
+        exclude_recent=config.exclude_recent,
+        consistency=ConsistencySettings(required=config.consistency),
+    )
+
+
+def _served_row(
+    config: OnlineConfig, extractor: str, pipeline: FeaturePipeline, length: int
+) -> dict[str, Any]:
+    """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept over the loop
+    probability by :func:`replay` (k=1, and with the protocol's consistency; ``sweeps`` adds
+    the same over the decision's logit), plus the operating point at the defaults and the jobs run during the replay."""
+    trajectory = config.trajectory
+    features = trajectory_vectors(trajectory, pipeline, config.cache_dir)
+    local = trajectory_local(trajectory, pipeline, config.cache_dir)
+    served = served_replay(
+        trajectory,
+        features,
+        local,
+        pipeline,
+        length=length,
+        exclude_recent=config.exclude_recent,
+        consistency=config.consistency,
+    )
+    vectors = unit_embeddings(features, pipeline.preset.alpha)
+    row: dict[str, Any] = {"method": f"loopnet-{extractor}-served"}
+    for score in SWEEPS:
+        observations = [Observation(*a) for a in served_observations(served, score)]
+        swept = replay(trajectory, vectors, _settings(config, length), observations)
+        if score == "decision.loop_probability":
+            row.update(swept)
+        row.setdefault("sweeps", {})[score] = swept["decisions"]
+    row["latency_note"] = (
+        "the observe call as served (search, sequence, verification, decision); CNNs and the "
+        "jobs run between frames not included"
+    )
+    return {**row, **served_decisions(trajectory, served, config.exclude_recent)}

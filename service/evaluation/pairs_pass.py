@@ -40,12 +40,12 @@ from service.evaluation.retraining_pass import _subset, query_submaps, revisit_s
 from service.evaluation.served_pass import (
     PARTS,
     ServedAnswers,
-    _stored,
+    as_stored,
+    run_job_now,
     served_answers,
     served_method,
     served_settings,
 )
-from service.jobs.retraining import JobRunner
 from service.ml.features import FrameFeatures
 from service.storage import jobs
 from service.storage import repository as repo
@@ -149,7 +149,7 @@ def observed_pairs_runs(
                     answer, frame = service.observe_features(
                         atlas_name=atlas,
                         fields=fields,
-                        features=replace(queries[q], local=_stored(queries[q].local)),
+                        features=replace(queries[q], local=as_stored(queries[q].local)),
                         k=k,
                         query_filter=service.query_filter(
                             robot_id=REVISIT_ROBOT, robots="others", timestamp=float(q)
@@ -213,18 +213,16 @@ def _adapt(service: AtlasService, atlas_id: int) -> dict[str, Any]:
     """An ``adapt`` job with the job's default parameters, run by the job runner."""
     with transaction(service.sessions) as session:
         job_id = jobs.create_job(session, atlas_id=atlas_id, kind="adapt", params={}).id
-    JobRunner(service.settings, service.sessions).run(job_id)
-    with service.sessions() as session:
-        job = jobs.get_job(session, job_id=job_id)
-        metrics = dict(job.metrics)
-        return {
-            "status": job.status,
-            "message": job.message,
-            "version": job.model_version,
-            "activated": bool(metrics.get("activated", False)),
-            "gate": metrics.get("held_out"),
-            "metrics": {k: v for k, v in metrics.items() if k not in ("held_out",)},
-        }
+    job = run_job_now(service, job_id)
+    metrics = dict(job.metrics)
+    return {
+        "status": job.status,
+        "message": job.message,
+        "version": job.model_version,
+        "activated": bool(metrics.get("activated", False)),
+        "gate": metrics.get("held_out"),
+        "metrics": {k: v for k, v in metrics.items() if k not in ("held_out",)},
+    }
 
 
 def observed_pairs_rows(

@@ -27,7 +27,11 @@ from service.config import Settings
 from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix
 from service.evaluation.protocol import MethodResult, evaluate_ranking
+from service.jobs.retraining import JobRunner
+from service.ml.decision import logit
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.storage import jobs
+from service.storage.models import Job
 
 PARTS = ("inliers", "inlier_ratio", "rival", "score", "sequence")
 # the settings a served answer takes at their defaults (the harness's atlas turns them off)
@@ -113,7 +117,7 @@ def served_answers(
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
-            features = replace(features, local=_stored(features.local))
+            features = replace(features, local=as_stored(features.local))
             start = time.perf_counter()
             if sequence_length:
                 fields = FrameFields(QUERY_SUBMAP, QUERY_ROBOT, timestamp=float(i))
@@ -134,11 +138,11 @@ def served_answers(
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
-            p = _probability(answer)
+            p = loop_probability(answer)
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
-            parts.append(_parts(answer))
+            parts.append(decision_parts(answer))
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -162,14 +166,25 @@ def answered_frames(answer: QueryResult) -> list[int]:
     return [first, *(f for f in ids if f != first)]
 
 
-def _probability(answer: QueryResult) -> float:
+def loop_probability(answer: QueryResult) -> float:
+    """The number the service thresholds (0 when the answer has no decision)."""
     decision = answer.decision
     if decision is None or decision.loop_probability is None:
         return 0.0
     return float(decision.loop_probability)
 
 
-def _parts(answer: QueryResult) -> list[float]:
+def decision_logit(answer: QueryResult) -> float:
+    """The decision model's logit of the answer's parts (-inf without a decision): ordered as
+    ``loop_probability`` but neither rounded nor saturated at 1.0, so a sweep can still order
+    the answers the rounded probability ties."""
+    decision = answer.decision
+    if decision is None or decision.loop_probability is None:
+        return -np.inf
+    return logit(decision.parts)
+
+
+def decision_parts(answer: QueryResult) -> list[float]:
     """The decision's inputs (uncentred), NaN where absent."""
     decision = answer.decision
     if decision is None:
@@ -177,7 +192,9 @@ def _parts(answer: QueryResult) -> list[float]:
     return [decision.parts.get(name, np.nan) for name in PARTS]
 
 
-def _stored(local: LocalFeatures) -> LocalFeatures:
+def as_stored(local: LocalFeatures) -> LocalFeatures:
+    """Descriptors rounded to float16, as the feature store (and the feature cache) gives
+    them back: a rerun from the cache answers the same."""
     return LocalFeatures(
         local.keypoints, local.descriptors.astype(np.float16).astype(np.float32), local.scores
     )
@@ -216,22 +233,40 @@ def served_method(
 
 
 def operating_point(served: ServedAnswers, dataset: Dataset) -> dict[str, float | int]:
-    """What the service answers at its defaults: a query is a loop when its status is
-    ``loop``; precision, recall and false loops per 1,000 queries."""
+    """What the service answers at its defaults (:func:`loop_counts`), per query."""
     positives = [q.positives for q in dataset.queries]
-    answerable = sum(1 for p in positives if p)
     right = correct_matrix(served.ranking, positives)[:, 0]
-    loops = np.array([s == "loop" for s in served.status], bool)
+    return loop_counts(served.status, right, sum(1 for p in positives if p), served.threshold)
+
+
+def loop_counts(
+    status: Sequence[str], right: np.ndarray, answerable: int, threshold: float
+) -> dict[str, float | int]:
+    """The operating point at the defaults: an answer is a loop when its status is ``loop``;
+    precision, recall (over the ``answerable`` queries), false loops per 1,000 answers, and
+    right answers the service called ``new_place``."""
+    loops = np.array([s == "loop" for s in status], bool)
+    right = np.asarray(right, bool)
     true_loops, false_loops = int(np.sum(loops & right)), int(np.sum(loops & ~right))
-    queries = len(loops)
     return {
-        "threshold": served.threshold,
+        "threshold": threshold,
         "loops": int(loops.sum()),
         "precision": true_loops / max(int(loops.sum()), 1),
         "recall": true_loops / max(answerable, 1),
         "false_loops": false_loops,
-        "false_loops_per_1000": 1000.0 * false_loops / max(queries, 1),
+        "false_loops_per_1000": 1000.0 * false_loops / max(len(loops), 1),
         "right_called_new_place": int(
-            sum(1 for s, r in zip(served.status, right, strict=True) if r and s == "new_place")
+            sum(1 for s, r in zip(status, right, strict=True) if r and s == "new_place")
         ),
     }
+
+
+def run_job_now(service: AtlasService, job_id: int) -> Job:
+    """Run a queued job in this process as a worker would (the job runner's own code), then
+    bring the service's loaded atlases up to date; returns the finished job row."""
+    JobRunner(service.settings, service.sessions).run(job_id)
+    with service.sessions() as session:
+        job = jobs.get_job(session, job_id=job_id)
+        session.expunge(job)
+    service.catch_up()
+    return job

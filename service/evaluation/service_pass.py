@@ -27,8 +27,7 @@ from service.app.ingest import FrameFields
 from service.config import Settings
 from service.evaluation.datasets import Dataset, all_images
 from service.evaluation.metrics import Ranking
-from service.evaluation.served_pass import ServedAnswers, served_answers
-from service.jobs.retraining import JobRunner
+from service.evaluation.served_pass import ServedAnswers, as_stored, run_job_now, served_answers
 from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.images import decode_image
@@ -236,14 +235,7 @@ def extract_local_features(
     """Only the local extractor over ``paths`` (the backbone's vectors are cached already)."""
     frames = []
     for path in tqdm(paths, desc=desc, unit="img", leave=False):
-        local = pipeline.local.extract(decode_image(path.read_bytes()))
-        frames.append(
-            LocalFeatures(
-                local.keypoints,
-                local.descriptors.astype(np.float16).astype(np.float32),
-                local.scores,
-            )
-        )
+        frames.append(as_stored(pipeline.local.extract(decode_image(path.read_bytes()))))
     return frames
 
 
@@ -345,7 +337,7 @@ def run_service_pass(
             if on_features is not None and not hit:
                 on_features(images[i], features)
             if not hit:
-                cached_local[images[i].resolve()] = _as_stored(features.local)
+                cached_local[images[i].resolve()] = as_stored(features.local)
             if i == n_refs:
                 stored_references = _read_back(service)
             local_vectors.append(features.local_vector)
@@ -370,7 +362,7 @@ def run_service_pass(
                 stage_ms["ingest"].append((time.perf_counter() - start) * 1000.0)
                 frame_to_reference[frame.id] = i
                 continue
-            query_local.append(_as_stored(features.local))
+            query_local.append(as_stored(features.local))
             query_features.append(features)
             answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
             found = [frame_to_reference[c.frame_id] for c in answer.candidates]
@@ -462,17 +454,14 @@ def _calibrated_answers(
     with transaction(service.sessions) as session:
         atlas_id = repo.get_atlas(session, name=ATLAS).id
         job_id = jobs.create_job(session, atlas_id=atlas_id, kind="calibrate", params=params).id
-    JobRunner(service.settings, service.sessions).run(job_id)
-    with service.sessions() as session:
-        job = jobs.get_job(session, job_id=job_id)
-        if job.status != "succeeded":
-            raise RuntimeError(f"the calibration job failed: {job.error}")
-        metrics = dict(job.metrics)
-    service.catch_up()
+    job = run_job_now(service, job_id)
+    if job.status != "succeeded":
+        raise RuntimeError(f"the calibration job failed: {job.error}")
+    metrics = dict(job.metrics)
     indices, scores, cosines, query_ms = [], [], [], []
     for features in queries:
         # descriptors rounded as the feature cache holds them: a rerun answers the same
-        features = replace(features, local=_as_stored(features.local))
+        features = replace(features, local=as_stored(features.local))
         answer = service.query_features(atlas_name=ATLAS, features=features, k=k)
         found = [frame_to_reference[c.frame_id] for c in answer.candidates]
         pad = k - len(found)
@@ -485,13 +474,6 @@ def _calibrated_answers(
         np.array(cosines, np.float64),
         np.array(query_ms, np.float64),
         metrics,
-    )
-
-
-def _as_stored(local: LocalFeatures) -> LocalFeatures:
-    """Descriptors rounded to float16, as the feature store gives them back."""
-    return LocalFeatures(
-        local.keypoints, local.descriptors.astype(np.float16).astype(np.float32), local.scores
     )
 
 

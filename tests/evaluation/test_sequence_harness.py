@@ -20,9 +20,9 @@ from service.evaluation.online import (
     Observation,
     OnlineSettings,
     replay,
-    trajectory_vectors,
     unit_embeddings,
 )
+from service.evaluation.online_features import trajectory_vectors
 from service.evaluation.online_service import service_observations
 from service.evaluation.sequence_pass import sequence_ranking
 from service.ml.pipeline import FeaturePipeline

@@ -1,0 +1,203 @@
+"""The online replay as served: one robot's frames through ``POST /observe``'s use case with
+every setting at the service's defaults (verification with the default matcher of the
+cached keypoints, the loop decision's ``loop_probability``, sequences and consistency), and
+the calibration the service runs at its milestones run during the replay.
+
+A frame whose insert makes the atlas reach a milestone queues a calibration job
+(:mod:`service.app.milestones`), as in the service; here the job runs at once in this process
+with the job runner's own code (:func:`service.evaluation.served_pass.run_job_now`), as a
+worker would between two frames, and the next frame is answered by the calibrated model
+version. The row's PR sweep runs over ``loop_probability`` (what the service thresholds) and
+its operating point is the service's own ``status == "loop"``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.app.catalog import AtlasService
+from service.evaluation.loop_ground_truth import Trajectory
+from service.evaluation.online_service import frame_times, observe_frame, replay_atlas
+from service.evaluation.served_pass import (
+    PARTS,
+    answered_frames,
+    decision_logit,
+    decision_parts,
+    loop_counts,
+    loop_probability,
+    run_job_now,
+)
+from service.evaluation.service_pass import CachedFeatures
+from service.ml.features import LocalFeatures
+from service.ml.pipeline import FeaturePipeline
+
+ANSWERS = 5  # candidates an observation returns (the API's default k)
+
+
+@dataclass(frozen=True)
+class JobRun:
+    """A job a frame's insert queued and the replay ran before the next frame.
+
+    Attributes:
+        frame: the trajectory frame whose insert queued it (its atlas then held frame + 1).
+        milestone: the calibration milestone it was queued for (None: another kind).
+        model_version: the version it made active (None: it made none).
+        seconds: wall time of the job and of loading its version.
+        frames_at_fit: frames the calibration was fitted on.
+        min_inliers: the minimum inliers it calibrated on the atlas's hard impostors.
+    """
+
+    job_id: int
+    kind: str
+    frame: int
+    milestone: int | None
+    status: str
+    model_version: int | None
+    seconds: float
+    frames_at_fit: int | None = None
+    min_inliers: int | None = None
+    error: str | None = None
+
+
+@dataclass
+class ServedReplay:
+    """Per frame, in order: the frame index answered first (-1: none), its loop probability
+    (0 without a decision) and the decision's logit (-inf without one), status, decision parts (NaN: absent), sequence length used, the
+    model version that answered and the call's milliseconds; then the jobs run meanwhile."""
+
+    references: list[int] = field(default_factory=list)
+    probability: list[float] = field(default_factory=list)
+    logits: list[float] = field(default_factory=list)
+    status: list[str] = field(default_factory=list)
+    parts: list[list[float]] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    versions: list[int] = field(default_factory=list)
+    ms: list[float] = field(default_factory=list)
+    jobs: list[JobRun] = field(default_factory=list)
+    threshold: float = 0.0
+    verification: dict[str, Any] = field(default_factory=dict)
+
+
+def served_replay(
+    trajectory: Trajectory,
+    features: CachedFeatures,
+    local: list[LocalFeatures],
+    pipeline: FeaturePipeline,
+    *,
+    length: int,
+    exclude_recent: int,
+    consistency: int,
+) -> ServedReplay:
+    """Observe every frame as the service at its defaults answers it (fusion at the preset's
+    alpha), running each job a frame queues before the next frame."""
+    count = len(features.local)
+    times = frame_times(trajectory, count)
+    dim = pipeline.local.descriptor_dim
+    index_of: dict[int, int] = {}
+    out = ServedReplay()
+    with replay_atlas(
+        trajectory,
+        pipeline,
+        alpha=pipeline.preset.alpha,
+        exclude_recent=exclude_recent,
+        consistency=consistency,
+        served=True,
+    ) as service:
+        queued: list[int] = []
+        service.frames.enqueue = queued.append  # a worker that runs each job at once
+        config = service.queries.verification.config
+        out.threshold = service.settings.loop_probability_min
+        out.verification = {"matcher": config.matcher, "top": config.top}
+        desc = f"observe as served: {trajectory.name}"
+        for t in tqdm(range(count), desc=desc, unit="frame"):
+            frame_features = replace(features.frame(t, dim)[0], local=local[t])
+            answer, frame_id, ms = observe_frame(
+                service,
+                frame_features,
+                float(times[t]),
+                k=ANSWERS,
+                length=length,
+                exclude_recent=exclude_recent,
+            )
+            index_of[frame_id] = t
+            first = answered_frames(answer)
+            out.references.append(index_of.get(first[0], -1) if first else -1)
+            out.probability.append(loop_probability(answer))
+            out.logits.append(decision_logit(answer))
+            out.status.append(answer.status)
+            out.parts.append(decision_parts(answer))
+            out.lengths.append(answer.sequence.length if answer.sequence is not None else 1)
+            out.versions.append(answer.model_version)
+            out.ms.append(ms)
+            while queued:
+                out.jobs.append(_run(service, queued.pop(0), t))
+    return out
+
+
+def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
+    """Run one queued job now; a failed job is reported, the replay goes on (as the service
+    goes on answering with its active version)."""
+    start = time.perf_counter()
+    job = run_job_now(service, job_id)
+    metrics = job.metrics or {}
+    verification = metrics.get("verification") or {}
+    return JobRun(
+        job_id=job.id,
+        kind=job.kind,
+        frame=frame,
+        milestone=(job.params or {}).get("milestone"),
+        status=job.status,
+        model_version=job.model_version,
+        seconds=round(time.perf_counter() - start, 3),
+        frames_at_fit=metrics.get("frames_at_fit"),
+        min_inliers=verification.get("min_inliers"),
+        error=job.error,
+    )
+
+
+SWEEPS = {"decision.loop_probability": "probability", "decision logit": "logits"}
+
+
+def served_observations(
+    served: ServedReplay, score: str = "decision.loop_probability"
+) -> list[tuple[int, float, int, float]]:
+    """``(reference, score, length, ms)`` per frame, the retrieval rows' shape, so one sweep
+    (:func:`service.evaluation.online.replay`) scores both; no answer: -inf. ``score``: one of
+    ``SWEEPS`` (the logit orders what the rounded probability ties at 1.0)."""
+    scores = getattr(served, SWEEPS[score])
+    return [
+        (r, p if r >= 0 else -np.inf, n, ms)
+        for r, p, n, ms in zip(served.references, scores, served.lengths, served.ms, strict=True)
+    ]
+
+
+def served_decisions(
+    trajectory: Trajectory, served: ServedReplay, exclude_recent: int
+) -> dict[str, Any]:
+    """The served row's extra fields: the operating point at the defaults (status ``loop``),
+    the jobs run during the replay, and each frame's answer (for reading the misses)."""
+    right = np.array(
+        [r in loops for r, loops in zip(served.references, trajectory.loops, strict=True)]
+    )
+    answerable = trajectory.answerable(exclude_recent)
+    return {
+        "score": "decision.loop_probability",
+        "operating_point": loop_counts(served.status, right, answerable, served.threshold),
+        "verification": served.verification,
+        "jobs": [asdict(job) for job in served.jobs],
+        "parts": PARTS,
+        "per_frame": {
+            "reference": served.references,
+            "loop_probability": np.round(served.probability, 4).tolist(),
+            "logit": np.round(served.logits, 3).tolist(),
+            "status": served.status,
+            "right": right.astype(int).tolist(),
+            "model_version": served.versions,
+            "parts": np.round(np.array(served.parts, np.float64), 4).tolist(),
+        },
+    }

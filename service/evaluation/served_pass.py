@@ -28,7 +28,7 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.jobs.retraining import JobRunner
-from service.ml.decision import logit
+from service.ml.decision import logit, probability
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import jobs
 from service.storage.models import Job
@@ -138,7 +138,7 @@ def served_answers(
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
-            p = loop_probability(answer)
+            p = swept_probability(answer)
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
@@ -172,6 +172,16 @@ def loop_probability(answer: QueryResult) -> float:
     if decision is None or decision.loop_probability is None:
         return 0.0
     return float(decision.loop_probability)
+
+
+def swept_probability(answer: QueryResult) -> float:
+    """``loop_probability`` as the decision computes it, before its rounding to 6 decimals
+    (which ties most verified sequence answers at 1.0, so a sweep could not order them):
+    the same order and threshold, in [0, 1]; 0 without a decision."""
+    decision = answer.decision
+    if decision is None or decision.loop_probability is None:
+        return 0.0
+    return probability(decision.parts)
 
 
 def decision_logit(answer: QueryResult) -> float:

@@ -56,29 +56,23 @@ def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: i
         served: ServedAnswers,
     ) -> list[Any]:
         states["before"] = _atlas_state(service)
-        runs = observed_pairs_runs(
-            service,
-            atlas=ATLAS,
-            dataset=dataset,
-            submap_of=submap_of,
-            queries=queries,
-            frame_to_reference=frame_to_reference,
-            before=served,
-            k=10,
-            shots=(3, 1),
-        )
-        states["labelled"] = observed_pairs_runs(
-            service,
-            atlas=ATLAS,
-            dataset=dataset,
-            submap_of=submap_of,
-            queries=queries,
-            frame_to_reference=frame_to_reference,
-            before=served,
-            k=10,
-            shots=(3,),
-            source="labelled",
-        )
+
+        def protocol(shots: tuple[int, ...], source: str) -> list[ObservedPairs]:
+            return observed_pairs_runs(
+                service,
+                atlas=ATLAS,
+                dataset=dataset,
+                submap_of=submap_of,
+                queries=queries,
+                frame_to_reference=frame_to_reference,
+                before=served,
+                k=10,
+                shots=shots,
+                source=source,
+            )
+
+        runs = protocol((3, 1), "observe")
+        states["labelled"] = protocol((3,), "labelled")
         states["after"] = _atlas_state(service)
         states["served"] = served
         return list(runs)

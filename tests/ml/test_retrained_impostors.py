@@ -35,6 +35,17 @@ def _passing(fitted: FittedCalibration, heads: LoopNetHeads, model: ImpostorMode
     return float(np.mean(model.score(queries @ stored.T) >= 2.0))
 
 
+def _atlas_data(fitted: FittedCalibration) -> TrainingData:
+    """The stored frames' calibrated branches as a job reads them, submaps of 20 frames."""
+    return TrainingData(
+        fitted.local_branch,
+        fitted.global_branch,
+        np.arange(len(STORED)) // 20,
+        np.asarray(STORED.order),
+        np.asarray(STORED.robots),
+    )
+
+
 def test_untrained_heads_get_the_calibrations_own_impostor_model(
     fitted: FittedCalibration,
 ) -> None:
@@ -54,13 +65,7 @@ def test_a_retrained_score_holds_its_meaning_on_frames_never_seen(
     # the in-sample refit (pairs of stored frames, all seen by the whitening) passed 5.1% of
     # these pairs at score 2, five times as many as the score says
     calibration = fitted.calibration
-    data = TrainingData(
-        fitted.local_branch,
-        fitted.global_branch,
-        np.arange(len(STORED)) // 20,
-        np.asarray(STORED.order),
-        np.asarray(STORED.robots),
-    )
+    data = _atlas_data(fitted)
     trained = train_heads(data, calibration.heads_config(), TrainingConfig(shots=3, epochs=30))
     assert trained.metrics["best_epoch"] > 0  # the heads did change
     model = retrained_impostor_model(trained.heads, calibration, STORED)
@@ -74,13 +79,7 @@ def test_an_adapted_score_holds_its_meaning_on_frames_never_seen(
     # heads, the probe's held-out frames are in-sample again and wrong matches score as rarer
     # than they are: the impostor model is refitted without them
     calibration = fitted.calibration
-    data = TrainingData(
-        fitted.local_branch,
-        fitted.global_branch,
-        np.arange(len(STORED)) // 20,
-        np.asarray(STORED.order),
-        np.asarray(STORED.robots),
-    )
+    data = _atlas_data(fitted)
     pairs = np.array([[4 * p, 4 * p + 2] for p in range(0, len(STORED) // 4, 2)])
     active = LoopNetHeads(calibration.heads_config()).eval()
     adapted = adapt_heads(data, pairs, active, PairWhiteningConfig(), min_pairs=2)

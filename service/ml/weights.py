@@ -7,6 +7,8 @@ seeded for kornia or torchvision serves LoopNet too. Nothing here runs at import
 from __future__ import annotations
 
 import logging
+import os
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -132,6 +134,11 @@ def seed_cache(source: Path, target: Path | None = None) -> list[Path]:
         if not destination.exists():
             try:
                 destination.symlink_to(file.resolve())
+            except FileExistsError:  # another process (a parallel test worker) got there first,
+                if not destination.exists():  # or a stale link to moved weights: replace it
+                    staging = target / f".{destination.name}.{uuid.uuid4().hex}"
+                    staging.symlink_to(file.resolve())
+                    os.replace(staging, destination)  # atomic, even against another seeder
             except OSError:
                 import shutil
 

@@ -2,8 +2,9 @@
 ``loopnet serve`` and a real retraining worker, on Gardens Point frames.
 
 The tests run in order on one service: an admin creates an atlas, robots' frames arrive
-through the API, then each page is used as its role allows. Each page's screenshot is saved
-under docs/screenshots/ (the README shows them).
+through the API, then each page is used as its role allows. Each page's screenshot is taken;
+with ``LOOPNET_UPDATE_SCREENSHOTS=1`` it is saved under docs/screenshots/ (the docs show them),
+otherwise in a temporary folder, so a test run leaves the tracked tree as it found it.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import csv
 import itertools
 import os
 import shutil
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -33,7 +35,11 @@ CHROMIUM_ARGS = [
     "--no-first-run",
     "--disable-sync",
 ]
-SCREENSHOTS = ROOT / "docs" / "screenshots"
+SCREENSHOTS = (
+    ROOT / "docs" / "screenshots"
+    if os.environ.get("LOOPNET_UPDATE_SCREENSHOTS") == "1"
+    else Path(tempfile.gettempdir()) / "loopnet-console-screenshots"
+)
 COHOG = DATA_DIR / "gardenspoint_cohog200"
 # places far apart along the route, so no two look alike; two robots, two submaps each
 ROUTE = {"husky-1": (0, 25, 50, 75, 100, 125), "husky-2": (140, 160, 180, 195)}
@@ -97,7 +103,7 @@ class Console:
 
 
 def shoot(page: Any, name: str, *, mask: tuple[str, ...] = ()) -> None:
-    """Save the page under docs/screenshots/ (``mask``: selectors painted over, e.g. tokens)."""
+    """Save the page under :data:`SCREENSHOTS` (``mask``: selectors painted over, e.g. tokens)."""
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
     masked = [page.locator(selector) for selector in mask]
     page.screenshot(

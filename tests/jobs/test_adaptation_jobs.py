@@ -4,7 +4,6 @@ and role), an adapt job run by a real worker process, and jobs refused for want 
 from __future__ import annotations
 
 import io
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -31,14 +30,6 @@ from tests.jobs.test_retraining_jobs import (
 )
 
 PLACES = 12  # mapped by r1, then observed again by r2
-
-
-@pytest.fixture
-def app_client(tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
-    settings = make_settings(tmp_path / "data", sync_seconds=0.2, calibration_milestones="")
-    with TestClient(create_app(settings, pipeline=pipeline)) as client:
-        wait_ready(client)
-        yield client
 
 
 def dusk(data: bytes) -> bytes:

@@ -9,7 +9,6 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -113,16 +112,6 @@ def query(client: TestClient, place: int) -> dict:
     )
     assert response.status_code == 200, response.text
     return response.json()
-
-
-@pytest.fixture
-def app_client(tmp_path: Path, pipeline) -> Iterator[TestClient]:  # type: ignore[no-untyped-def]
-    # no automatic calibration: the atlas stays at its initial version until a retraining job
-    # (the milestone calibration has its own tests in test_calibration_jobs.py)
-    settings = make_settings(tmp_path / "data", sync_seconds=0.2, calibration_milestones="")
-    with TestClient(create_app(settings, pipeline=pipeline)) as client:
-        wait_ready(client)
-        yield client
 
 
 def run_retraining_scenario(client: TestClient, env: dict[str, str]) -> None:

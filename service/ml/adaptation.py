@@ -30,6 +30,7 @@ from service.ml.pair_whitening import (
     PairWhiteningConfig,
     fold_into_heads,
     fused_inputs,
+    pair_differences,
 )
 from service.ml.pipeline import embed_vectors
 from service.ml.retrained_impostors import ProbeRefit
@@ -75,13 +76,20 @@ def probe_refit(
     def refit(probe: ImpostorProbe) -> LoopNetHeads:
         inputs = fused_inputs(base, probe.local_branch, probe.global_branch)
         seen = inputs if probe.held is None else inputs[~probe.held]
-        if whiten:
-            start = PairWhitening.fit_differences(seen, differences, config)
-        else:
-            start = identity_start(seen, len(differences))
+        start = fitted_start(seen, differences, config, whiten)
         return fold_into_heads(base, start if tune is None else tune(start))
 
     return refit
+
+
+def fitted_start(
+    frames: np.ndarray, differences: np.ndarray, config: PairWhiteningConfig, whiten: bool
+) -> PairWhitening:
+    """What the adaptation starts from (and the loss, if any, tunes): the learned whitening of
+    ``frames`` and the pairs' ``differences``, or with ``whiten`` False the centred input."""
+    if whiten:
+        return PairWhitening.fit_differences(frames, differences, config)
+    return identity_start(frames, len(differences))
 
 
 def split_pairs(count: int, share: float = HELD_OUT_SHARE) -> tuple[np.ndarray, np.ndarray]:
@@ -179,11 +187,10 @@ def adapt_heads(
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
 
     def start_from(chosen: np.ndarray) -> PairWhitening:
-        if whiten:
-            return PairWhitening.fit(inputs, chosen, config)
-        return identity_start(inputs, len(chosen))
+        return fitted_start(inputs, pair_differences(inputs, chosen), config, whiten)
 
-    whitening = start_from(train)
+    differences = pair_differences(inputs, train)
+    whitening = fitted_start(inputs, differences, config, whiten)
     tuned: dict[str, Any] = {}
     repeat: Callable[[PairWhitening], PairWhitening] | None = None
     if pair_loss is not None:
@@ -213,7 +220,6 @@ def adapt_heads(
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
-    differences = inputs[train[:, 0]] - inputs[train[:, 1]]
     refit = probe_refit(base, differences, config, whiten=whiten, tune=repeat)
     return AdaptationResult(heads, whitening, gate, metrics, refit)
 

@@ -74,9 +74,7 @@ class PairWhitening:
     ) -> PairWhitening:
         """Fit on ``n x dim`` vectors (the atlas's frames) and ``P x 2`` row indices of
         matching pairs into them (``P >= 1``)."""
-        pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-        x = np.asarray(vectors, np.float64)
-        return cls.fit_differences(x, x[pairs[:, 0]] - x[pairs[:, 1]], config)
+        return cls.fit_differences(vectors, pair_differences(vectors, pairs), config)
 
     @classmethod
     def fit_differences(
@@ -127,6 +125,15 @@ class PairWhitening:
         """``n x dim`` -> ``n x kept`` unit vectors."""
         x = np.asarray(vectors, np.float32)
         return l2_normalize((x - self.mean) @ self.projection)
+
+
+def pair_differences(vectors: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """``P x dim`` differences of the rows ``pairs`` (``P x 2``) name, in float64 as the
+    whitening fits them."""
+    x = np.asarray(vectors)
+    rows = np.asarray(pairs, np.int64).reshape(-1, 2)
+    differences: np.ndarray = x[rows[:, 0]].astype(np.float64) - x[rows[:, 1]].astype(np.float64)
+    return differences
 
 
 def _span(centred: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 from service.api.app import create_app
 from service.app.change_feed import ADD, changes_between, prune, record, revisions
 from service.app.model_versions import initial_version_config
+from service.config import Settings
 from service.fleet.atlas_repair import activate_version
 from service.storage import repository as repo
 from service.storage.db import make_engine, make_session_factory, transaction, upgrade_database
@@ -47,13 +48,8 @@ def within(seconds: float, condition: Callable[[], bool]) -> float:
     return time.monotonic() - start
 
 
-@pytest.fixture
-def two_apps(
-    tmp_path: Path, postgres_url: str, pipeline
-) -> Iterator[tuple[TestClient, TestClient]]:  # type: ignore[no-untyped-def]
-    settings = make_settings(
-        tmp_path / "data", database_url=postgres_url, sync_seconds=SYNC_SECONDS
-    )
+def _two_apps(settings: Settings, pipeline) -> Iterator[tuple[TestClient, TestClient]]:  # type: ignore[no-untyped-def]
+    """Two API processes' apps on the same settings (one database), both ready."""
     with (
         TestClient(create_app(settings, pipeline=pipeline)) as one,
         TestClient(create_app(settings, pipeline=pipeline)) as two,
@@ -61,6 +57,16 @@ def two_apps(
         wait_ready(one)
         wait_ready(two)
         yield one, two
+
+
+@pytest.fixture
+def two_apps(
+    tmp_path: Path, postgres_url: str, pipeline
+) -> Iterator[tuple[TestClient, TestClient]]:  # type: ignore[no-untyped-def]
+    settings = make_settings(
+        tmp_path / "data", database_url=postgres_url, sync_seconds=SYNC_SECONDS
+    )
+    yield from _two_apps(settings, pipeline)
 
 
 @pytest.fixture(params=["faiss", "pgvector"])
@@ -74,13 +80,7 @@ def two_apps_each_store(
     settings = make_settings(
         tmp_path / "data", database_url=url, sync_seconds=SYNC_SECONDS, vector_store=store
     )
-    with (
-        TestClient(create_app(settings, pipeline=pipeline)) as one,
-        TestClient(create_app(settings, pipeline=pipeline)) as two,
-    ):
-        wait_ready(one)
-        wait_ready(two)
-        yield one, two
+    yield from _two_apps(settings, pipeline)
 
 
 def test_frames_and_deletions_reach_the_other_process(

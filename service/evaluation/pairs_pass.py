@@ -138,25 +138,25 @@ def observed_pairs_runs(
                     fields = FrameFields(
                         f"revisit-{int(revisited[q]):05d}", REVISIT_ROBOT, timestamp=float(q)
                     )
+                    features = replace(queries[q], local=as_stored(queries[q].local))
                     if source == "labelled":
                         frame = service.ingest_features(
-                            atlas_name=atlas, fields=fields, features=queries[q]
+                            atlas_name=atlas, fields=fields, features=features
                         )
-                        query_of[frame.id] = int(q)
-                        statuses["labelled"] += 1
                         labels.label(atlas, frame.id, reference_frame[int(partners[q])])
-                        continue
-                    answer, frame = service.observe_features(
-                        atlas_name=atlas,
-                        fields=fields,
-                        features=replace(queries[q], local=as_stored(queries[q].local)),
-                        k=k,
-                        query_filter=service.query_filter(
-                            robot_id=REVISIT_ROBOT, robots="others", timestamp=float(q)
-                        ),
-                    )
+                        statuses["labelled"] += 1
+                    else:
+                        answer, frame = service.observe_features(
+                            atlas_name=atlas,
+                            fields=fields,
+                            features=features,
+                            k=k,
+                            query_filter=service.query_filter(
+                                robot_id=REVISIT_ROBOT, robots="others", timestamp=float(q)
+                            ),
+                        )
+                        statuses[answer.status] += 1
                     query_of[frame.id] = int(q)
-                    statuses[answer.status] += 1
             with service.sessions() as session:
                 recorded = pair_frames(
                     session, atlas_id=atlas_id, where=PairFilter(robots=(REVISIT_ROBOT,))

@@ -177,6 +177,13 @@ class DecisionSettings(BaseSettings):
         description="Nor do its frames taken within T seconds of the query's timestamp, or of its"
         " latest frame's (per request: exclude_recent_seconds).",
     )
+    exclude_stay: bool = Field(
+        True,
+        description="Nor do the frames of its current stay: its newest frames that still show the "
+        "query's place (calibrated score at least loop_score_min), up to the first two that do "
+        "not. A robot that stands still does not close a loop with itself; one that left and "
+        "came back does. Needs a calibrated model version (service.app.stay).",
+    )
 
 
 class SequenceSettings(BaseSettings):

@@ -14,7 +14,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.app.decision import answer_evidence, probable_candidate, verified_count
-from service.app.filters import QueryFilter, resolve
+from service.app.filters import QueryFilter, Selection, resolve
 from service.app.ingest import FrameIngest
 from service.app.observe import Observations, with_extraction_timings
 from service.app.results import (
@@ -32,6 +32,7 @@ from service.app.sequences import (
     single_frame_verdict,
 )
 from service.app.state import AtlasStates, LoadedAtlas
+from service.app.stay import robot_stay
 from service.app.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
@@ -63,6 +64,7 @@ class Found:
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
     evidence: RobotEvidence | None  # the robot's sequence and previous observations
     proposals: list[int]  # the search's best frames: what this frame proposes to sequences
+    stay_frames: int  # the robot's current stay, left out of the search
 
 
 class AtlasQueries(Observations):
@@ -269,6 +271,7 @@ class AtlasQueries(Observations):
             sequence=sequence,
             proposals=found.proposals,
             decision=decision,
+            stay_frames=found.stay_frames,
         )
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
@@ -294,6 +297,11 @@ class AtlasQueries(Observations):
         keypoints of those to verify, and the robot's sequence evidence, all in the request's
         one search session."""
         selection = resolve(session, atlas, query_filter)
+        stay = robot_stay(
+            session, state, self.sequences.maps, self.settings, embedding, query_filter
+        )
+        if len(stay):
+            selection = Selection(selection.include, np.union1d(selection.exclude, stay))
         top = self.verification.config.top
         pool = max(k, top, MARGIN_POOL)
         if robot is not None:  # its frame's proposals are kept by an observation
@@ -320,4 +328,4 @@ class AtlasQueries(Observations):
             checked = candidates[: verified_count(top, state.index.size)]
             stored = load_local_features(session, [c.frame_id for c in checked])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
-        return Found(candidates, frames, names, stored, evidence, proposals)
+        return Found(candidates, frames, names, stored, evidence, proposals, len(stay))

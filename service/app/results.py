@@ -86,6 +86,8 @@ class QueryResult:
     # its frame proposes to later sequences (not part of the answer)
     proposals: list[int] = field(default_factory=list, repr=False)
     decision: Decision | None = None  # the loop probability, its parts and why it failed
+    # the asking robot's newest frames taken as its current stay and left out (service.app.stay)
+    stay_frames: int = 0
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

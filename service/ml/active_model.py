@@ -51,8 +51,13 @@ class ActiveModel:
         prediction = self.heads.predict_submap(torch.from_numpy(local), torch.from_numpy(global_))
         return embedding, prediction
 
+    @property
+    def scores(self) -> bool:
+        """Whether the version is calibrated against impostors (:meth:`score` gives scores)."""
+        return self.calibration is not None and self.calibration.impostors is not None
+
     def score(self, similarities: np.ndarray) -> np.ndarray | None:
         """Calibrated scores of cosines; None when the version has no impostor model."""
-        if self.calibration is None or self.calibration.impostors is None:
+        if self.calibration is None or not self.scores:
             return None
         return np.asarray(self.calibration.score(similarities), np.float64)

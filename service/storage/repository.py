@@ -205,6 +205,20 @@ def recent_robot_frames(
     return [(int(i), t) for i, t in rows][::-1]
 
 
+def robot_frames_newest_first(
+    session: Session, *, atlas_id: int, robot_id: str, offset: int, limit: int
+) -> np.ndarray:
+    """A robot's frame ids newest first (ids grow with arrival), ``limit`` from ``offset``."""
+    query = (
+        select(Frame.id)
+        .where(Frame.atlas_id == atlas_id, Frame.robot_id == robot_id)
+        .order_by(Frame.id.desc())
+        .offset(offset)
+        .limit(limit)
+    )
+    return np.fromiter(session.scalars(query), np.int64)
+
+
 def frame_ids_of_submap(session: Session, *, submap_id: int) -> list[int]:
     return [int(i) for i in session.scalars(select(Frame.id).where(Frame.submap_id == submap_id))]
 

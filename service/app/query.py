@@ -32,7 +32,7 @@ from service.app.sequences import (
     single_frame_verdict,
 )
 from service.app.state import AtlasStates, LoadedAtlas
-from service.app.stay import robot_stay
+from service.app.stay import behind_sequence, own_frames_of, robot_stay
 from service.app.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
@@ -314,7 +314,10 @@ class AtlasQueries(Observations):
         evidence = None
         if robot is not None:
             start = time.perf_counter()
-            evidence = self.sequences.answer(session, state, robot, embedding, hits, selection)
+            own_frames = own_frames_of(session, atlas.id, robot.robot_id)
+            behind = behind_sequence(own_frames, selection.exclude, robot.sequence_length)
+            aligned = Selection(selection.include, np.union1d(selection.exclude, behind))
+            evidence = self.sequences.answer(session, state, robot, embedding, hits, aligned)
             timings["sequence"] = (time.perf_counter() - start) * 1000.0
         names = repo.submap_names(session, atlas_id=atlas.id)
         frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])

@@ -68,7 +68,8 @@ class JobRun:
 class ServedReplay:
     """Per frame, in order: the frame index answered first (-1: none), its loop probability
     (0 without a decision) and the decision's logit (-inf without one), status, decision parts (NaN: absent), sequence length used, the
-    model version that answered and the call's milliseconds; then the jobs run meanwhile."""
+    model version that answered, the frames of its current stay left out and the call's
+    milliseconds; then the jobs run meanwhile."""
 
     references: list[int] = field(default_factory=list)
     probability: list[float] = field(default_factory=list)
@@ -77,6 +78,7 @@ class ServedReplay:
     parts: list[list[float]] = field(default_factory=list)
     lengths: list[int] = field(default_factory=list)
     versions: list[int] = field(default_factory=list)
+    stays: list[int] = field(default_factory=list)
     ms: list[float] = field(default_factory=list)
     jobs: list[JobRun] = field(default_factory=list)
     threshold: float = 0.0
@@ -133,6 +135,7 @@ def served_replay(
             out.parts.append(decision_parts(answer))
             out.lengths.append(answer.sequence.length if answer.sequence is not None else 1)
             out.versions.append(answer.model_version)
+            out.stays.append(answer.stay_frames)
             out.ms.append(ms)
             while queued:
                 out.jobs.append(_run(service, queued.pop(0), t))
@@ -198,6 +201,7 @@ def served_decisions(
             "status": served.status,
             "right": right.astype(int).tolist(),
             "model_version": served.versions,
+            "stay_frames": served.stays,
             "parts": np.round(np.array(served.parts, np.float64), 4).tolist(),
         },
     }

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.app.stay import BREAK, current_stay
+from service.app.stay import BREAK, FADE, behind_sequence, current_stay
 from service.evaluation.served_pass import run_job_now
 from tests.api.helpers import create_atlas
 from tests.conftest import make_settings, wait_ready
@@ -20,46 +20,72 @@ from tests.jobs.test_retraining_jobs import cohog
 # ----- the walk, on vectors whose likeness to the query is known -----------------------------
 
 
-def walk(alike: list[bool], first_block: int | None = None) -> list[int]:
-    """The stay over a robot whose frames newest first are ids 100, 99, ... and resemble the
-    query as ``alike`` says (cosine 1 or 0 against the query)."""
-    ids = np.arange(100, 100 - len(alike), -1, dtype=np.int64)
-    cosine = dict(zip(ids.tolist(), alike, strict=True))
+ALIKE, BETWEEN, ELSEWHERE = 3.0, 1.5, 0.0  # scores: the place, neither, another place
+
+
+def walk(scores: list[float]) -> list[int]:
+    """The stay over a robot whose frames newest first are ids 1000, 999, ... and score
+    ``scores`` against the query (loop_score_min 2, another place below 1)."""
+    ids = np.arange(1000, 1000 - len(scores), -1, dtype=np.int64)
 
     def own_frames(offset: int, limit: int) -> np.ndarray:
         return ids[offset : offset + limit]
 
-    def vectors(frame_ids: np.ndarray) -> np.ndarray:
-        return np.array([[1.0, 0.0] if cosine[i] else [0.0, 1.0] for i in frame_ids.tolist()])
+    def vectors(frame_ids: np.ndarray) -> np.ndarray:  # the query is (1, 0): cosine = score
+        return np.array([[scores[1000 - i], 0.0] for i in frame_ids.tolist()])
 
     stay = current_stay(
         own_frames=own_frames,
         query=np.array([1.0, 0.0], np.float32),
         vectors=vectors,
-        resembles=lambda similarities: similarities > 0.5,
+        scores=lambda similarities: similarities,
+        alike=2.0,
+        elsewhere=1.0,
     )
     return stay.tolist()
 
 
 def test_a_stay_ends_where_the_robot_was_elsewhere() -> None:
-    assert walk([True, True, True, False, False, True, True]) == [100, 99, 98]
-    assert walk([False, False, True]) == []  # the robot has just arrived: no stay
+    assert walk([ALIKE, ALIKE, ALIKE, ELSEWHERE, ELSEWHERE, ALIKE]) == [1000, 999, 998]
+    assert walk([ELSEWHERE, ELSEWHERE, ALIKE]) == []  # the robot has just arrived: no stay
     assert walk([]) == []
 
 
 def test_one_odd_frame_does_not_end_a_stay() -> None:
-    """A person passing in front of the camera: one unlike frame between alike ones belongs to
-    the stay; it takes BREAK unlike frames in a row to end it, and none is kept at its end."""
+    """A person passing in front of the camera: one frame of "another place" between frames of
+    the place belongs to the stay; it takes BREAK in a row to end it, and the stay ends at the
+    oldest frame that showed the place."""
     assert BREAK == 2
-    assert walk([True, False, True, True, False, False, True]) == [100, 99, 98, 97]
-    assert walk([True, True, False]) == [100, 99]
+    assert walk([ALIKE, ELSEWHERE, ALIKE, ALIKE, ELSEWHERE, ELSEWHERE, ALIKE]) == [
+        1000,
+        999,
+        998,
+        997,
+    ]
+    assert walk([ALIKE, ALIKE, ELSEWHERE]) == [1000, 999]
+
+
+def test_frames_in_between_neither_extend_nor_end_a_stay_until_it_fades() -> None:
+    """Hysteresis: frames scoring between "another place" and "the place" (light changes, a
+    slow creep) carry the stay to an older frame of the place; FADE of them in a row end it."""
+    assert walk([ALIKE, BETWEEN, BETWEEN, ALIKE, BETWEEN, ELSEWHERE, ELSEWHERE]) == [
+        1000,
+        999,
+        998,
+        997,
+    ]
+    assert walk([ALIKE] + [BETWEEN] * (FADE - 1) + [ALIKE]) == list(
+        range(1000, 1000 - FADE - 1, -1)
+    )
+    assert walk([ALIKE] + [BETWEEN] * FADE + [ALIKE]) == [1000]
+    assert walk([float("nan"), float("nan"), ALIKE]) == []  # not held yet: another place
 
 
 def test_a_long_stay_is_read_across_blocks() -> None:
     """A robot parked for 300 frames: read in blocks (32, 64, ...) until the robot was
     elsewhere."""
-    alike = [True] * 300 + [False, False] + [True] * 10
-    assert walk(alike) == list(range(100, 100 - 300, -1))
+    scores = [ALIKE] * 300 + [ELSEWHERE, ELSEWHERE] + [ALIKE] * 10
+    assert walk(scores) == list(range(1000, 1000 - 300, -1))
 
 
 # ----- the service: a calibrated atlas, a robot that stops, leaves and comes back -----------
@@ -124,3 +150,18 @@ def test_a_robot_standing_still_does_not_close_a_loop_with_itself(
     back = observe(calibrated, 155)
     assert back["stay_frames"] == 0
     assert back["match"]["frame_id"] in first_frames  # its own earlier frames may match now
+
+
+def test_a_sequence_never_aligns_with_the_frames_just_behind_its_oldest_frame() -> None:
+    """The query leaves out the robot's 3 newest frames (recent) and 2 more (its stay); a
+    sequence of 4 frames also leaves out the 3 before them: its oldest frame is 3 frames
+    behind the newest, and its own recent past lies that much further back."""
+    ids = np.arange(100, 0, -1, dtype=np.int64)  # newest first
+
+    def own_frames(offset: int, limit: int) -> np.ndarray:
+        return ids[offset : offset + limit]
+
+    left_out = np.array([100, 99, 98, 97, 96, 40])  # 40: another filter's, not a prefix
+    assert behind_sequence(own_frames, left_out, 4).tolist() == list(range(100, 92, -1))
+    assert behind_sequence(own_frames, left_out, 1).tolist() == []  # no sequence
+    assert behind_sequence(own_frames, np.zeros(0, np.int64), 3).tolist() == [100, 99]

@@ -32,7 +32,7 @@ from service.app.sequences import (
     single_frame_verdict,
 )
 from service.app.state import AtlasStates, LoadedAtlas
-from service.app.stay import behind_sequence, own_frames_of, robot_stay
+from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.app.verify import CandidateVerification
 from service.config import Settings
 from service.errors import InvalidInput
@@ -297,9 +297,12 @@ class AtlasQueries(Observations):
         keypoints of those to verify, and the robot's sequence evidence, all in the request's
         one search session."""
         selection = resolve(session, atlas, query_filter)
-        stay = robot_stay(
-            session, state, self.sequences.maps, self.settings, embedding, query_filter
+        own = (
+            RobotFrames(session, atlas.id, query_filter.robot_id)
+            if query_filter.robot_id is not None
+            else None
         )
+        stay = self._stay(own, state, embedding, query_filter)
         if len(stay):
             selection = Selection(selection.include, np.union1d(selection.exclude, stay))
         top = self.verification.config.top
@@ -314,10 +317,7 @@ class AtlasQueries(Observations):
         evidence = None
         if robot is not None:
             start = time.perf_counter()
-            own_frames = own_frames_of(session, atlas.id, robot.robot_id)
-            behind = behind_sequence(own_frames, selection.exclude, robot.sequence_length)
-            aligned = Selection(selection.include, np.union1d(selection.exclude, behind))
-            evidence = self.sequences.answer(session, state, robot, embedding, hits, aligned)
+            evidence = self.sequences.answer(session, state, robot, embedding, hits, selection, own)
             timings["sequence"] = (time.perf_counter() - start) * 1000.0
         names = repo.submap_names(session, atlas_id=atlas.id)
         frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])
@@ -332,3 +332,18 @@ class AtlasQueries(Observations):
             stored = load_local_features(session, [c.frame_id for c in checked])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
         return Found(candidates, frames, names, stored, evidence, proposals, len(stay))
+
+    def _stay(
+        self,
+        own: RobotFrames | None,
+        state: LoadedAtlas,
+        embedding: np.ndarray,
+        query_filter: QueryFilter,
+    ) -> np.ndarray:
+        """The asking robot's current stay (:mod:`service.app.stay`): empty without a robot whose
+        own frames may match, with the setting off, or on an uncalibrated version."""
+        rule = stay_rule(state, self.settings)
+        if own is None or query_filter.robots == "others" or rule is None:
+            return np.zeros(0, np.int64)
+        with self.sequences.maps.hold(own.session, state) as view:
+            return frame_stay(own, view, rule, embedding)

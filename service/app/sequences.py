@@ -31,6 +31,7 @@ from service.app.filters import Selection
 from service.app.results import SequenceAnswer
 from service.app.sequence_map import SequenceMap, SequenceMaps
 from service.app.state import LoadedAtlas
+from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.config import Settings
 from service.index import Hit
 from service.ml.impostors import loop_score_threshold
@@ -159,8 +160,10 @@ class SequenceScorer:
         newest: np.ndarray,
         hits: list[Hit],
         selection: Selection,
+        own: RobotFrames | None = None,
     ) -> RobotEvidence:
-        """The robot's sequence answer (None when off) and its previous observations."""
+        """The robot's sequence answer (None when off) and its previous observations; ``own``:
+        the robot's frames as the request has read them (None: read here)."""
         longest = max(robot.sequence_length, self.consistency.required)
         previous = query_sequence(
             session, state.atlas_id, robot, longest, self.settings.sequence_max_gap_seconds
@@ -177,6 +180,9 @@ class SequenceScorer:
                 if p >= 0
             ]
             eligible = _eligible(view, selection)
+            own = own or RobotFrames(session, state.atlas_id, robot.robot_id)
+            stays = self._stays(own, state, view, robot, previous)
+            eligible[stays[stays >= 0]] = False
             sequence = None
             if robot.sequence_length > 0 and view.count:
                 sequence = self._score(
@@ -184,6 +190,29 @@ class SequenceScorer:
                 )
             past = self._previous(state, view, earlier, eligible, selection)
             return RobotEvidence(sequence, past, view.position, view.trajectories, self.consistency)
+
+    def _stays(
+        self,
+        own: RobotFrames,
+        state: LoadedAtlas,
+        view: SequenceMap,
+        robot: RobotContext,
+        previous: list[int],
+    ) -> np.ndarray:
+        """Map positions of the stays of the sequence's earlier frames (:mod:`service.app.stay`):
+        each frame of a sequence is held to the rule of the frame asked about, so none aligns
+        with the robot's own frames of the place it was standing at then."""
+        rule = stay_rule(state, self.settings)
+        frames = previous[-(robot.sequence_length - 1) :] if robot.sequence_length > 1 else []
+        held = [f for f in frames if f in view.position]
+        if rule is None or not held:
+            return np.zeros(0, np.int64)
+        vectors = view.lookup(view.positions(held))
+        stays = [
+            frame_stay(own, view, rule, vector, before=frame_id)
+            for frame_id, vector in zip(held, vectors, strict=True)
+        ]
+        return view.positions(np.concatenate(stays))
 
     def _score(
         self,

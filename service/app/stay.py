@@ -23,17 +23,21 @@ The stay is every frame up to the oldest one that showed the place; it never mat
 everything older may. On an uncalibrated model version there is no score that says "as alike as
 the same place" (the cosine of unrelated frames may exceed any fixed threshold), so no stay is
 recognised and only the recent-frame exclusion applies.
+
+A sequence holds each of its frames to the same rule: the stays of its earlier frames (read
+among the robot's frames older than each) are left out of its alignment too
+(:class:`~service.app.sequences.SequenceScorer`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy.orm import Session
 
-from service.app.filters import QueryFilter
-from service.app.sequence_map import SequenceMap, SequenceMaps
+from service.app.sequence_map import SequenceMap
 from service.app.state import LoadedAtlas
 from service.config import Settings
 from service.storage import repository as repo
@@ -95,37 +99,94 @@ def current_stay(
     return np.array(seen[:reach], np.int64)
 
 
-def robot_stay(
-    session: Session,
-    state: LoadedAtlas,
-    maps: SequenceMaps,
-    settings: Settings,
-    query: np.ndarray,
-    query_filter: QueryFilter,
-) -> np.ndarray:
-    """The asking robot's current stay for a query frame's vector: empty without a robot whose
-    own frames may match, with ``exclude_stay`` off, or on an uncalibrated version."""
-    robot = query_filter.robot_id
-    if robot is None or query_filter.robots == "others" or not settings.exclude_stay:
-        return np.zeros(0, np.int64)
-    if not state.model.scores:
-        return np.zeros(0, np.int64)  # no bar says "as alike as the same place"
+@dataclass(frozen=True)
+class StayRule:
+    """How frames are scored against a frame whose stay is read: the model version's calibrated
+    scores (NaN in, NaN out) and the two bars of the hysteresis."""
+
+    scores: Callable[[np.ndarray], np.ndarray]
+    alike: float
+    elsewhere: float
+
+
+def stay_rule(state: LoadedAtlas, settings: Settings) -> StayRule | None:
+    """The rule on the atlas's active version; None with ``exclude_stay`` off or on an
+    uncalibrated version (no score says "as alike as the same place")."""
+    if not settings.exclude_stay or not state.model.scores:
+        return None
+    model = state.model
 
     def scores(similarities: np.ndarray) -> np.ndarray:
         out = np.full(len(similarities), np.nan)
         known = np.isfinite(similarities)
-        out[known] = np.asarray(state.model.score(similarities[known].astype(np.float64)))
+        out[known] = np.asarray(model.score(similarities[known].astype(np.float64)))
         return out
 
-    with maps.hold(session, state) as view:  # the index's vectors, cached per process
-        return current_stay(
-            own_frames=own_frames_of(session, state.atlas_id, robot),
-            query=query,
-            vectors=lambda ids: _held_vectors(view, ids),
-            scores=scores,
-            alike=settings.loop_score_min,
-            elsewhere=min(ELSEWHERE_SCORE, settings.loop_score_min),
-        )
+    return StayRule(
+        scores,
+        alike=settings.loop_score_min,
+        elsewhere=min(ELSEWHERE_SCORE, settings.loop_score_min),
+    )
+
+
+class RobotFrames:
+    """One robot's frame ids newest first (ids grow with arrival), read from the database once
+    per request in growing chunks: the stays of a query and of its sequence's frames all walk
+    the same few dozen frames."""
+
+    CHUNK = 64
+
+    def __init__(self, session: Session, atlas_id: int, robot_id: str) -> None:
+        self.session, self.atlas_id, self.robot_id = session, atlas_id, robot_id
+        self._ids = np.zeros(0, np.int64)
+        self._complete = False
+
+    def _read_to(self, count: int) -> None:
+        """Hold at least ``count`` ids (or all there are)."""
+        while len(self._ids) < count and not self._complete:
+            wanted = max(count - len(self._ids), self.CHUNK, len(self._ids))
+            more = repo.robot_frames_newest_first(
+                self.session,
+                atlas_id=self.atlas_id,
+                robot_id=self.robot_id,
+                offset=len(self._ids),
+                limit=wanted,
+            )
+            self._complete = len(more) < wanted
+            self._ids = np.concatenate([self._ids, more])
+
+    def older_than(self, frame_id: int | None) -> Callable[[int, int], np.ndarray]:
+        """``(offset, limit)`` -> ids older than ``frame_id`` (None: all), newest first."""
+
+        def own_frames(offset: int, limit: int) -> np.ndarray:
+            start = 0
+            if frame_id is not None:
+                while not self._complete and (not len(self._ids) or self._ids[-1] >= frame_id):
+                    self._read_to(len(self._ids) + self.CHUNK)
+                start = int(np.count_nonzero(self._ids >= frame_id))
+            self._read_to(start + offset + limit)
+            return self._ids[start + offset : start + offset + limit]
+
+        return own_frames
+
+
+def frame_stay(
+    own: RobotFrames,
+    view: SequenceMap,
+    rule: StayRule,
+    vector: np.ndarray,
+    before: int | None = None,
+) -> np.ndarray:
+    """The stay of a frame of ``own``'s robot whose vector is ``vector``: among the robot's
+    frames older than frame id ``before`` (None: all of them, for the frame being asked about)."""
+    return current_stay(
+        own_frames=own.older_than(before),
+        query=vector,
+        vectors=lambda ids: _held_vectors(view, ids),
+        scores=rule.scores,
+        alike=rule.alike,
+        elsewhere=rule.elsewhere,
+    )
 
 
 def _held_vectors(view: SequenceMap, ids: np.ndarray) -> np.ndarray:
@@ -136,34 +197,3 @@ def _held_vectors(view: SequenceMap, ids: np.ndarray) -> np.ndarray:
     held = positions >= 0
     rows[held] = view.lookup(positions[held])
     return rows
-
-
-def behind_sequence(
-    own_frames: Callable[[int, int], np.ndarray], excluded: np.ndarray, length: int
-) -> np.ndarray:
-    """The robot's own frames a sequence of ``length`` frames may not align with: its newest
-    frames that the query already leaves out (recent frames, the stay) and the ``length - 1``
-    before them. Each frame of a sequence has its own recent past: the oldest is ``length - 1``
-    frames behind the newest, so the frames just behind it lie that much further back (a slowly
-    moving robot's sequence otherwise aligns with its own trajectory just outside the window).
-
-    ``own_frames``: as for :func:`current_stay`."""
-    if length <= 1:
-        return np.zeros(0, np.int64)
-    newest = own_frames(0, len(excluded) + length - 1)
-    left_out = np.isin(newest, excluded)
-    prefix = len(newest) if left_out.all() else int(np.argmin(left_out))
-    return newest[: prefix + length - 1]
-
-
-def own_frames_of(
-    session: Session, atlas_id: int, robot_id: str
-) -> Callable[[int, int], np.ndarray]:
-    """``(offset, limit)`` -> the robot's frame ids newest first, from the database."""
-
-    def own_frames(offset: int, limit: int) -> np.ndarray:
-        return repo.robot_frames_newest_first(
-            session, atlas_id=atlas_id, robot_id=robot_id, offset=offset, limit=limit
-        )
-
-    return own_frames

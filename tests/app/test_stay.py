@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.app.stay import BREAK, FADE, behind_sequence, current_stay
+from service.app.stay import BREAK, FADE, current_stay
 from service.evaluation.served_pass import run_job_now
 from tests.api.helpers import create_atlas
 from tests.conftest import make_settings, wait_ready
@@ -152,16 +152,15 @@ def test_a_robot_standing_still_does_not_close_a_loop_with_itself(
     assert back["match"]["frame_id"] in first_frames  # its own earlier frames may match now
 
 
-def test_a_sequence_never_aligns_with_the_frames_just_behind_its_oldest_frame() -> None:
-    """The query leaves out the robot's 3 newest frames (recent) and 2 more (its stay); a
-    sequence of 4 frames also leaves out the 3 before them: its oldest frame is 3 frames
-    behind the newest, and its own recent past lies that much further back."""
-    ids = np.arange(100, 0, -1, dtype=np.int64)  # newest first
 
-    def own_frames(offset: int, limit: int) -> np.ndarray:
-        return ids[offset : offset + limit]
-
-    left_out = np.array([100, 99, 98, 97, 96, 40])  # 40: another filter's, not a prefix
-    assert behind_sequence(own_frames, left_out, 4).tolist() == list(range(100, 92, -1))
-    assert behind_sequence(own_frames, left_out, 1).tolist() == []  # no sequence
-    assert behind_sequence(own_frames, np.zeros(0, np.int64), 3).tolist() == [100, 99]
+def test_a_sequence_never_aligns_with_the_stays_of_its_frames(calibrated: TestClient) -> None:
+    """r1 stands at place 155 for 6 frames, then moves on to place 5: the newest frame has no
+    stay, but its sequence's earlier frames do, and none of them aligns with r1's own frames
+    of that stop (the same visit, not a loop)."""
+    stop = {observe(calibrated, 155)["frame_id"] for _ in range(6)}
+    moved = observe(calibrated, 5)
+    assert moved["stay_frames"] == 0
+    sequence = moved["sequence"]
+    assert sequence is not None and sequence["length"] > 1
+    assert not stop & {frame for frame in sequence["aligned"] if frame is not None}
+    assert moved["status"] != "loop" or moved["loop_frame_id"] not in stop

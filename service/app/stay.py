@@ -10,19 +10,11 @@ the place in between.
 The stay is read from the robot's frames newest first, each scored against the query frame by
 the calibrated score against impostors (each frame judged on its own, not as the best of a
 search: no ``log10(frames)`` is added), with hysteresis, since a stopped robot's frames vary
-(people pass, light changes):
-
-- a frame scoring at least ``loop_score_min`` shows the query's place: the stay reaches it;
-- a frame scoring below ``ELSEWHERE_SCORE`` (as alike as one pair of different places in ten)
-  shows another place; ``BREAK`` of them in a row are evidence that the robot was elsewhere,
-  and end the walk;
-- a frame in between neither extends nor ends the stay, but ``FADE`` frames in a row that do not
-  show the place end it too.
-
-The stay is every frame up to the oldest one that showed the place; it never matches, and
-everything older may. On an uncalibrated model version there is no score that says "as alike as
-the same place" (the cosine of unrelated frames may exceed any fixed threshold), so no stay is
-recognised and only the recent-frame exclusion applies.
+(people pass, light changes): from ``loop_score_min`` a frame shows the place, below
+``ELSEWHERE_SCORE`` another place (:mod:`service.ml.stays` walks it). The stay never matches;
+everything older may. On an uncalibrated model version there is no score that says "as alike
+as the same place" (the cosine of unrelated frames may exceed any fixed threshold), so no stay
+is recognised and only the recent-frame exclusion applies.
 
 A sequence holds each of its frames to the same rule: the stays of its earlier frames (read
 among the robot's frames older than each) are left out of its alignment too
@@ -40,63 +32,8 @@ from sqlalchemy.orm import Session
 from service.app.sequence_map import SequenceMap
 from service.app.state import LoadedAtlas
 from service.config import Settings
+from service.ml.stays import ELSEWHERE_SCORE, current_stay
 from service.storage import repository as repo
-
-# Below this score a frame shows another place (one impostor pair in ten is as alike).
-ELSEWHERE_SCORE = 1.0
-# Frames in a row showing another place that end a stay: one odd frame (a person passing in
-# front of the camera) is not evidence that the robot left.
-BREAK = 2
-# Frames in a row that do not show the query's place (scores in between) that end it as well.
-FADE = 8
-# The walk reads the robot's frames in blocks, doubling from the first: a moving robot's stay
-# ends within the first block, a stopped robot's is read up to MAX_FRAMES back.
-FIRST_BLOCK = 32
-MAX_FRAMES = 4096
-
-
-def current_stay(
-    *,
-    own_frames: Callable[[int, int], np.ndarray],
-    query: np.ndarray,
-    vectors: Callable[[np.ndarray], np.ndarray],
-    scores: Callable[[np.ndarray], np.ndarray],
-    alike: float,
-    elsewhere: float = ELSEWHERE_SCORE,
-    max_frames: int = MAX_FRAMES,
-) -> np.ndarray:
-    """Ids of the robot's newest frames that form its current stay (newest first).
-
-    Args:
-        own_frames: ``(offset, limit)`` -> the robot's frame ids newest first (ids grow with
-            arrival), ``limit`` of them from ``offset``.
-        query: the query frame's (unit) vector.
-        vectors: the index's stored vectors of frame ids (rows in the same order).
-        scores: calibrated scores of cosine similarities to the query (NaN: unknown).
-        alike: the score from which a frame shows the query's place.
-        elsewhere: the score below which it shows another place.
-        max_frames: read no further back than this many of the robot's frames.
-    """
-    seen: list[int] = []
-    reach = 0  # frames of ``seen`` up to the oldest that showed the place
-    elsewhere_run = 0
-    offset, block = 0, FIRST_BLOCK
-    while offset < max_frames:
-        ids = own_frames(offset, min(block, max_frames - offset))
-        if not len(ids):
-            break
-        similarity = scores(vectors(ids) @ np.asarray(query, np.float32))
-        for frame_id, score in zip(ids.tolist(), similarity.tolist(), strict=True):
-            seen.append(frame_id)
-            if score >= alike:
-                reach, elsewhere_run = len(seen), 0
-                continue
-            elsewhere_run = elsewhere_run + 1 if not score >= elsewhere else 0  # NaN: elsewhere
-            if elsewhere_run >= BREAK or len(seen) - reach >= FADE:
-                return np.array(seen[:reach], np.int64)
-        offset += len(ids)
-        block *= 2
-    return np.array(seen[:reach], np.int64)
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,14 @@ from service.ml.aggregators import AGGREGATORS
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.heads import LoopNetHeads
 from service.ml.impostors import frames_for_impostor_model
-from service.ml.inlier_threshold import InlierThreshold, fit_inlier_threshold, hard_impostors
+from service.ml.inlier_threshold import (
+    InlierThreshold,
+    StayScores,
+    fit_inlier_threshold,
+    hard_impostors,
+)
 from service.ml.pipeline import embed_vectors
+from service.ml.stays import ELSEWHERE_SCORE
 from service.ml.training import TrainingCancelled
 from service.ml.verification import Verifier, View
 from service.storage import jobs
@@ -93,8 +99,13 @@ def run_calibration(
     threshold = None
     if runner.settings.verify_top > 0:
         runner._progress(job_id, 90, "calibrating the minimum inliers on hard impostors")
+        stays = StayScores(
+            calibration.score,
+            alike=runner.settings.loop_score_min,
+            elsewhere=min(ELSEWHERE_SCORE, runner.settings.loop_score_min),
+        )
         threshold = calibrate_min_inliers(
-            runner.settings, runner.sessions, atlas_id, embeddings, inputs
+            runner.settings, runner.sessions, atlas_id, embeddings, inputs, stays
         )
     metrics: dict[str, Any] = {
         "frames_at_fit": len(inputs),
@@ -133,10 +144,12 @@ def calibrate_min_inliers(
     atlas_id: int,
     embeddings: np.ndarray,
     inputs: CalibrationInputs,
+    stays: StayScores | None = None,
 ) -> InlierThreshold:
     """Verify the atlas's hard impostors with the service's matcher and set the minimum
-    inliers above them (see :mod:`service.ml.inlier_threshold`)."""
-    pairs = hard_impostors(embeddings, inputs.robots, np.asarray(inputs.order))
+    inliers above them (see :mod:`service.ml.inlier_threshold`); ``stays``: the new version's
+    scores, so a robot's frames of one stop are not each other's impostors."""
+    pairs = hard_impostors(embeddings, inputs.robots, np.asarray(inputs.order), stays=stays)
     ids = np.asarray(inputs.order)
     wanted = sorted({int(ids[i]) for pair in pairs for i in pair})
     with sessions() as session:

@@ -4,19 +4,22 @@ How many RANSAC inliers a wrong candidate reaches depends on the images (size, t
 repetitive structure) and on the keypoint budget, so a fixed minimum chosen on one dataset does
 not transfer. The atlas's hard impostors are the wrong candidates a query meets: for a sample
 of frames, the most similar frame (by the calibrated embedding) that is not the same place by
-sequence alone. The minimum is set just above a high quantile of their inliers, never below a
+sequence alone, nor part of the frame's stay (:mod:`service.ml.stays`: a robot that stood still
+longer than the sequence gap shows one place in all of it, and on Nordland the frames of stops
+made the minimum 256-267 inliers at 128-512 frames, so that nothing verified). The minimum is set just above a high quantile of their inliers, never below a
 floor where RANSAC agreement happens by chance.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from service.ml.impostors import sequence_positions
+from service.ml.stays import current_stay
 
 FLOOR = 15  # fewer inliers can agree on a fundamental matrix by chance
 QUANTILE = 0.99  # robust to the few true revisits among far-apart frames
@@ -44,9 +47,13 @@ def hard_impostors(
     *,
     frames: int = 200,
     seed: int = 0,
+    stays: StayScores | None = None,
 ) -> list[tuple[int, int]]:
     """``(i, j)``: for up to ``frames`` sampled frames ``i``, the most similar frame ``j`` of
-    another robot, or of the same robot at least a twentieth of its frames (5 or more) away."""
+    another robot, or of the same robot at least a twentieth of its frames (5 or more) away
+    and outside ``i``'s stay (with ``stays``: a robot standing still for longer than that gap
+    shows one place in all of it, and its own frames of the stop are no impostors; without a
+    calibrated score to read stays by, only the gap applies)."""
     n = len(embeddings)
     codes, rank, gap = sequence_positions(robots, np.asarray(order))
     rng = np.random.default_rng(seed)
@@ -55,11 +62,49 @@ def hard_impostors(
     for i in chosen:
         similarity = embeddings @ embeddings[i]
         same_place = (codes == codes[i]) & (np.abs(rank - rank[i]) < gap[i])
+        if stays is not None:
+            same_place[stays.around(embeddings, codes, rank, int(i))] = True
         similarity[same_place] = -np.inf
         j = int(np.argmax(similarity))
         if np.isfinite(similarity[j]):
             pairs.append((int(i), j))
     return pairs
+
+
+@dataclass(frozen=True)
+class StayScores:
+    """Calibrated scores of cosines and the stay's bars (:mod:`service.ml.stays`)."""
+
+    scores: Callable[[np.ndarray], np.ndarray]
+    alike: float
+    elsewhere: float
+
+    def around(
+        self, embeddings: np.ndarray, codes: np.ndarray, rank: np.ndarray, i: int
+    ) -> np.ndarray:
+        """Frame ``i``'s stay both ways along its robot's sequence (row indices)."""
+        robot = np.flatnonzero(codes == codes[i])
+        by_rank = robot[np.argsort(rank[robot], kind="stable")]
+        at = int(np.flatnonzero(by_rank == i)[0])
+        sides = (by_rank[:at][::-1], by_rank[at + 1 :])  # newest first before i, then after
+        return np.concatenate(
+            [
+                current_stay(
+                    own_frames=_reader(side),
+                    query=embeddings[i],
+                    vectors=lambda rows: embeddings[rows],
+                    scores=self.scores,
+                    alike=self.alike,
+                    elsewhere=self.elsewhere,
+                )
+                for side in sides
+            ]
+        )
+
+
+def _reader(rows: np.ndarray) -> Callable[[int, int], np.ndarray]:
+    """``(offset, limit)`` -> a slice of ``rows`` (a side of a frame's sequence, nearest first)."""
+    return lambda offset, limit: rows[offset : offset + limit]
 
 
 def fit_inlier_threshold(matcher: str, inliers: Sequence[int]) -> InlierThreshold:

@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.app.stay import BREAK, FADE, current_stay
 from service.evaluation.served_pass import run_job_now
+from service.ml.stays import BREAK, FADE, current_stay
 from tests.api.helpers import create_atlas
 from tests.conftest import make_settings, wait_ready
 from tests.jobs.test_retraining_jobs import cohog
@@ -150,7 +150,6 @@ def test_a_robot_standing_still_does_not_close_a_loop_with_itself(
     back = observe(calibrated, 155)
     assert back["stay_frames"] == 0
     assert back["match"]["frame_id"] in first_frames  # its own earlier frames may match now
-
 
 
 def test_a_sequence_never_aligns_with_the_stays_of_its_frames(calibrated: TestClient) -> None:

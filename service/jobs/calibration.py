@@ -26,10 +26,14 @@ from service.ml.calibration import Calibration, CalibrationConfig, CalibrationIn
 from service.ml.heads import LoopNetHeads
 from service.ml.impostors import frames_for_impostor_model
 from service.ml.inlier_threshold import (
+    FLOOR,
+    NEAR_DUPLICATE,
     InlierThreshold,
     StayScores,
     fit_inlier_threshold,
     hard_impostors,
+    midpoints,
+    one_stop,
 )
 from service.ml.pipeline import embed_vectors
 from service.ml.stays import ELSEWHERE_SCORE
@@ -149,9 +153,13 @@ def calibrate_min_inliers(
     """Verify the atlas's hard impostors with the service's matcher and set the minimum
     inliers above them (see :mod:`service.ml.inlier_threshold`); ``stays``: the new version's
     scores, so a robot's frames of one stop are not each other's impostors."""
-    pairs = hard_impostors(embeddings, inputs.robots, np.asarray(inputs.order), stays=stays)
-    ids = np.asarray(inputs.order)
-    wanted = sorted({int(ids[i]) for pair in pairs for i in pair})
+    order = np.asarray(inputs.order)
+    pairs = hard_impostors(embeddings, inputs.robots, order, stays=stays)
+    halfway = midpoints(inputs.robots, order, pairs)
+    ids = order
+    wanted = sorted(
+        {int(ids[i]) for pair in pairs for i in pair} | {int(ids[m]) for m in halfway if m >= 0}
+    )
     with sessions() as session:
         atlas = session.get(Atlas, atlas_id)
         if atlas is None:
@@ -161,12 +169,24 @@ def calibrate_min_inliers(
         frames = repo.frames_by_id(session, frame_ids=wanted)
     config = verification_config(settings, extractor)
     verifier = Verifier(config)
-    inliers = []
-    for i, j in pairs:
+
+    def view(frame: int) -> View:
+        return View(stored[frame], (frames[frame].width, frames[frame].height))
+
+    inliers, stops = [], 0
+    for (i, j), middle in zip(pairs, halfway, strict=True):
         a, b = int(ids[i]), int(ids[j])
         if a not in stored or b not in stored:
             continue  # deleted meanwhile
-        first = View(stored[a], (frames[a].width, frames[a].height))
-        second = View(stored[b], (frames[b].width, frames[b].height))
-        inliers.append(verifier.verify(first, second).inliers)
-    return fit_inlier_threshold(config.matcher, inliers)
+        found = verifier.verify(view(a), view(b)).inliers
+        m = int(ids[middle]) if middle >= 0 else None
+        keypoints = min(stored[a].count, stored[b].count)
+        if (
+            found >= max(FLOOR, NEAR_DUPLICATE * keypoints)  # else no need to look halfway
+            and m in stored
+            and one_stop(found, verifier.verify(view(a), view(m)).inliers, keypoints)
+        ):
+            stops += 1  # the robot never left: the same place, no impostor
+            continue
+        inliers.append(found)
+    return fit_inlier_threshold(config.matcher, inliers, one_stop_pairs=stops)

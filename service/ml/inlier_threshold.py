@@ -23,6 +23,7 @@ from service.ml.stays import current_stay
 
 FLOOR = 15  # fewer inliers can agree on a fundamental matrix by chance
 QUANTILE = 0.99  # robust to the few true revisits among far-apart frames
+NEAR_DUPLICATE = 0.25  # of the keypoints as inliers: two views of one spot, not a look-alike
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class InlierThreshold:
     impostor_quantile: float  # their inliers at QUANTILE
     impostor_max: int
     accepted_impostors: int  # of them at or above the minimum
+    one_stop_pairs: int = 0  # pairs of one robot's frames left out: it never left the place
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -102,12 +104,40 @@ class StayScores:
         )
 
 
+def midpoints(robots: Sequence[str], order: np.ndarray, pairs: list[tuple[int, int]]) -> list[int]:
+    """For each pair of one robot's frames, the frame halfway between them along its sequence
+    (-1 for a pair of two robots, or of neighbours with nothing in between)."""
+    codes, rank, _ = sequence_positions(robots, np.asarray(order))
+    at = {(int(c), int(r)): i for i, (c, r) in enumerate(zip(codes, rank, strict=True))}
+    found = []
+    for i, j in pairs:
+        low, high = sorted((int(rank[i]), int(rank[j])))
+        same = codes[i] == codes[j] and high - low > 1
+        found.append(at[(int(codes[i]), (low + high) // 2)] if same else -1)
+    return found
+
+
+def one_stop(pair_inliers: int, midpoint_inliers: int, keypoints: int) -> bool:
+    """Whether a pair of one robot's frames shows one place it never left: the pair is a near
+    duplicate (``NEAR_DUPLICATE`` of the fewer keypoints are inliers) and the frame halfway
+    between them matches the first at least half as well. A look-alike elsewhere is no near
+    duplicate, or has unrelated frames in between; frames along a straight route overlap (the
+    middle one matches better than the far one) but are no near duplicates (on
+    gardenspoint_cohog200, 15-22 inliers of 275-392 keypoints). The embedding need not see a
+    stop: on Nordland's dark stops, frames 250 inliers apart had calibrated cosines of 0.15-0.4.
+    """
+    duplicate = pair_inliers >= max(FLOOR, NEAR_DUPLICATE * keypoints)
+    return duplicate and midpoint_inliers >= pair_inliers / 2
+
+
 def _reader(rows: np.ndarray) -> Callable[[int, int], np.ndarray]:
     """``(offset, limit)`` -> a slice of ``rows`` (a side of a frame's sequence, nearest first)."""
     return lambda offset, limit: rows[offset : offset + limit]
 
 
-def fit_inlier_threshold(matcher: str, inliers: Sequence[int]) -> InlierThreshold:
+def fit_inlier_threshold(
+    matcher: str, inliers: Sequence[int], one_stop_pairs: int = 0
+) -> InlierThreshold:
     """The minimum just above the impostors' high quantile (at least :data:`FLOOR`)."""
     values = np.asarray(inliers, np.int64)
     if len(values) == 0:
@@ -121,4 +151,5 @@ def fit_inlier_threshold(matcher: str, inliers: Sequence[int]) -> InlierThreshol
         impostor_quantile=round(quantile, 2),
         impostor_max=int(values.max()),
         accepted_impostors=int((values >= minimum).sum()),
+        one_stop_pairs=one_stop_pairs,
     )

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.ml.inlier_threshold import FLOOR, StayScores, fit_inlier_threshold, hard_impostors
+from service.ml.inlier_threshold import (
+    FLOOR,
+    StayScores,
+    fit_inlier_threshold,
+    hard_impostors,
+    midpoints,
+    one_stop,
+)
 
 
 def test_hard_impostors_are_the_most_similar_frames_of_other_places() -> None:
@@ -57,3 +64,21 @@ def test_a_robots_frames_of_one_stop_are_not_each_others_impostors() -> None:
     for i, j in seeing:
         assert not (i in stop and j in stop), (i, j)
         assert abs(places[i] - places[j]) == 1 or abs(i - j) >= 5  # a neighbouring place
+
+
+def test_a_pair_of_one_robots_frames_is_checked_halfway() -> None:
+    """The frame halfway along the robot's sequence (by its order, not by row), for pairs of
+    one robot with a frame in between; none for two robots or neighbours."""
+    robots = ["a", "b", "a", "a", "b", "a", "a"]
+    order = np.array([0, 0, 1, 2, 1, 3, 4])  # robot a's rows 0, 2, 3, 5, 6 in that order
+    assert midpoints(robots, order, [(0, 6), (6, 0), (0, 2), (0, 1), (2, 5)]) == [3, 3, -1, -1, 3]
+
+
+def test_one_stop_is_a_near_duplicate_whose_middle_matches_too() -> None:
+    assert one_stop(250, 240, keypoints=500)  # a train standing at a station
+    assert not one_stop(250, 100, keypoints=500)  # the frames in between show other places
+    # frames along a straight route overlap: the middle matches better, but the pair is no
+    # near duplicate (gardenspoint_cohog200: 15-22 inliers of 275-392 keypoints)
+    assert not one_stop(22, 56, keypoints=354)
+    assert not one_stop(14, 14, keypoints=40)  # below the floor, nothing is evidence
+    assert fit_inlier_threshold("mnn", [10, 20], one_stop_pairs=3).one_stop_pairs == 3

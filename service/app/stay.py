@@ -24,7 +24,6 @@ among the robot's frames older than each) are left out of its alignment too
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -32,18 +31,8 @@ from sqlalchemy.orm import Session
 from service.app.sequence_map import SequenceMap
 from service.app.state import LoadedAtlas
 from service.config import Settings
-from service.ml.stays import ELSEWHERE_SCORE, current_stay
+from service.ml.stays import ELSEWHERE_SCORE, StayRule
 from service.storage import repository as repo
-
-
-@dataclass(frozen=True)
-class StayRule:
-    """How frames are scored against a frame whose stay is read: the model version's calibrated
-    scores (NaN in, NaN out) and the two bars of the hysteresis."""
-
-    scores: Callable[[np.ndarray], np.ndarray]
-    alike: float
-    elsewhere: float
 
 
 def stay_rule(state: LoadedAtlas, settings: Settings) -> StayRule | None:
@@ -116,14 +105,7 @@ def frame_stay(
 ) -> np.ndarray:
     """The stay of a frame of ``own``'s robot whose vector is ``vector``: among the robot's
     frames older than frame id ``before`` (None: all of them, for the frame being asked about)."""
-    return current_stay(
-        own_frames=own.older_than(before),
-        query=vector,
-        vectors=lambda ids: _held_vectors(view, ids),
-        scores=rule.scores,
-        alike=rule.alike,
-        elsewhere=rule.elsewhere,
-    )
+    return rule.stay(own.older_than(before), vector, lambda ids: _held_vectors(view, ids))
 
 
 def _held_vectors(view: SequenceMap, ids: np.ndarray) -> np.ndarray:

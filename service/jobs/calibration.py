@@ -29,14 +29,13 @@ from service.ml.inlier_threshold import (
     FLOOR,
     NEAR_DUPLICATE,
     InlierThreshold,
-    StayScores,
     fit_inlier_threshold,
     hard_impostors,
     midpoints,
     one_stop,
 )
 from service.ml.pipeline import embed_vectors
-from service.ml.stays import ELSEWHERE_SCORE
+from service.ml.stays import ELSEWHERE_SCORE, StayRule
 from service.ml.training import TrainingCancelled
 from service.ml.verification import Verifier, View
 from service.storage import jobs
@@ -103,7 +102,7 @@ def run_calibration(
     threshold = None
     if runner.settings.verify_top > 0:
         runner._progress(job_id, 90, "calibrating the minimum inliers on hard impostors")
-        stays = StayScores(
+        stays = StayRule(
             calibration.score,
             alike=runner.settings.loop_score_min,
             elsewhere=min(ELSEWHERE_SCORE, runner.settings.loop_score_min),
@@ -148,7 +147,7 @@ def calibrate_min_inliers(
     atlas_id: int,
     embeddings: np.ndarray,
     inputs: CalibrationInputs,
-    stays: StayScores | None = None,
+    stays: StayRule | None = None,
 ) -> InlierThreshold:
     """Verify the atlas's hard impostors with the service's matcher and set the minimum
     inliers above them (see :mod:`service.ml.inlier_threshold`); ``stays``: the new version's

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from service.ml.impostors import sequence_positions
-from service.ml.stays import current_stay
+from service.ml.stays import StayRule
 
 FLOOR = 15  # fewer inliers can agree on a fundamental matrix by chance
 QUANTILE = 0.99  # robust to the few true revisits among far-apart frames
@@ -49,7 +49,7 @@ def hard_impostors(
     *,
     frames: int = 200,
     seed: int = 0,
-    stays: StayScores | None = None,
+    stays: StayRule | None = None,
 ) -> list[tuple[int, int]]:
     """``(i, j)``: for up to ``frames`` sampled frames ``i``, the most similar frame ``j`` of
     another robot, or of the same robot at least a twentieth of its frames (5 or more) away
@@ -65,7 +65,7 @@ def hard_impostors(
         similarity = embeddings @ embeddings[i]
         same_place = (codes == codes[i]) & (np.abs(rank - rank[i]) < gap[i])
         if stays is not None:
-            same_place[stays.around(embeddings, codes, rank, int(i))] = True
+            same_place[_stay_both_ways(stays, embeddings, codes, rank, int(i))] = True
         similarity[same_place] = -np.inf
         j = int(np.argmax(similarity))
         if np.isfinite(similarity[j]):
@@ -73,35 +73,16 @@ def hard_impostors(
     return pairs
 
 
-@dataclass(frozen=True)
-class StayScores:
-    """Calibrated scores of cosines and the stay's bars (:mod:`service.ml.stays`)."""
-
-    scores: Callable[[np.ndarray], np.ndarray]
-    alike: float
-    elsewhere: float
-
-    def around(
-        self, embeddings: np.ndarray, codes: np.ndarray, rank: np.ndarray, i: int
-    ) -> np.ndarray:
-        """Frame ``i``'s stay both ways along its robot's sequence (row indices)."""
-        robot = np.flatnonzero(codes == codes[i])
-        by_rank = robot[np.argsort(rank[robot], kind="stable")]
-        at = int(np.flatnonzero(by_rank == i)[0])
-        sides = (by_rank[:at][::-1], by_rank[at + 1 :])  # newest first before i, then after
-        return np.concatenate(
-            [
-                current_stay(
-                    own_frames=_reader(side),
-                    query=embeddings[i],
-                    vectors=lambda rows: embeddings[rows],
-                    scores=self.scores,
-                    alike=self.alike,
-                    elsewhere=self.elsewhere,
-                )
-                for side in sides
-            ]
-        )
+def _stay_both_ways(
+    rule: StayRule, embeddings: np.ndarray, codes: np.ndarray, rank: np.ndarray, i: int
+) -> np.ndarray:
+    """Frame ``i``'s stay both ways along its robot's sequence (row indices)."""
+    robot = np.flatnonzero(codes == codes[i])
+    by_rank = robot[np.argsort(rank[robot], kind="stable")]
+    at = int(np.flatnonzero(by_rank == i)[0])
+    sides = (by_rank[:at][::-1], by_rank[at + 1 :])  # nearest first before i, then after
+    rows = [rule.stay(_reader(side), embeddings[i], lambda r: embeddings[r]) for side in sides]
+    return np.concatenate(rows)
 
 
 def midpoints(robots: Sequence[str], order: np.ndarray, pairs: list[tuple[int, int]]) -> list[int]:

@@ -19,6 +19,7 @@ The stay is every frame up to the farthest one that showed the place.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -77,3 +78,29 @@ def current_stay(
         offset += len(ids)
         block *= 2
     return np.array(seen[:reach], np.int64)
+
+
+@dataclass(frozen=True)
+class StayRule:
+    """How frames are scored against the frame whose stay is read (calibrated scores of cosine
+    similarities; NaN: unknown, another place) and the hysteresis's two bars."""
+
+    scores: Callable[[np.ndarray], np.ndarray]
+    alike: float
+    elsewhere: float = ELSEWHERE_SCORE
+
+    def stay(
+        self,
+        own_frames: Callable[[int, int], np.ndarray],
+        query: np.ndarray,
+        vectors: Callable[[np.ndarray], np.ndarray],
+    ) -> np.ndarray:
+        """:func:`current_stay` by this rule."""
+        return current_stay(
+            own_frames=own_frames,
+            query=query,
+            vectors=vectors,
+            scores=self.scores,
+            alike=self.alike,
+            elsewhere=self.elsewhere,
+        )

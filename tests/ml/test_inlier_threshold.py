@@ -7,12 +7,12 @@ import pytest
 
 from service.ml.inlier_threshold import (
     FLOOR,
-    StayScores,
     fit_inlier_threshold,
     hard_impostors,
     midpoints,
     one_stop,
 )
+from service.ml.stays import StayRule
 
 
 def test_hard_impostors_are_the_most_similar_frames_of_other_places() -> None:
@@ -56,7 +56,7 @@ def test_a_robots_frames_of_one_stop_are_not_each_others_impostors() -> None:
     assert any(i in stop and j in stop for i, j in blind)
 
     # score: 2 (the place) for identical frames, below 0 for neighbouring places (cos 12 deg)
-    stays = StayScores(lambda cosines: 100.0 * (cosines - 0.98), alike=1.5, elsewhere=1.0)
+    stays = StayRule(lambda cosines: 100.0 * (cosines - 0.98), alike=1.5, elsewhere=1.0)
     seeing = hard_impostors(
         embeddings, ["r"] * len(places), np.arange(len(places)), frames=44, stays=stays
     )

@@ -196,10 +196,12 @@ def test_query_page_finds_the_place(console: Console) -> None:
     with console.client("robot") as husky2:  # the page shows the API's own decision and why
         answer = husky2.query(ATLAS, cohog(75, "query"))
     assert answer.match is not None and answer.match.inliers is not None
-    expected = "loop closure" if answer.loop_closure else "no loop closure"
-    assert page.text_content("[data-testid=decision]") == expected
+    expected = {"loop": "loop closure", "candidate": "candidate (not a loop yet)"}
+    assert page.text_content("[data-testid=decision]") == expected.get(answer.status, "new place")
     why = page.text_content("[data-testid=why]") or ""
-    assert f"{answer.match.inliers} inliers" in why and "threshold 0.90" in why
+    assert answer.decision is not None and answer.decision.loop_probability is not None
+    assert f"{answer.match.inliers} inliers" in why
+    assert f"loop_probability {answer.decision.loop_probability:.3f} (a loop needs 0.98)" in why
     thumbnails_loaded(page, "[data-testid=candidate] img")
     assert page.locator("[data-testid=candidate]").count() == 5
     shoot(page, "query")

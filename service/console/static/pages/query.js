@@ -1,5 +1,5 @@
 // Query: upload or drop an image and see the answer as the API gives it: the top-k frames with
-// similarity and verification inliers, the loop-closure decision and why.
+// similarity and verification inliers, the decision's status, its loop_probability and why.
 import { get, post } from "../api.js";
 import { atlasPicker, errorBox, fmt, h, thumbImg } from "../ui.js";
 
@@ -39,25 +39,33 @@ export function why(answer) {
   const m = answer.match;
   if (!m) return "The atlas has no frame the query may match.";
   const v = answer.verification;
+  const d = answer.decision;
   const parts = [];
-  parts.push(m.similarity >= answer.threshold
-    ? `similarity ${fmt.num(m.similarity)} ≥ threshold ${fmt.num(answer.threshold, 2)}`
-    : `similarity ${fmt.num(m.similarity)} < threshold ${fmt.num(answer.threshold, 2)}`);
+  if (v.enabled && d && d.loop_probability !== null) {
+    parts.push(`loop_probability ${fmt.num(d.loop_probability)} (a loop needs ${d.threshold})`);
+  }
   if (v.enabled) {
     parts.push(m.verified ? `verified: ${m.inliers} inliers ≥ ${v.min_inliers}` : `not verified: ${m.inliers ?? 0} inliers < ${v.min_inliers}`);
-  } else parts.push("geometric verification off");
+  } else {
+    parts.push(`geometric verification off: similarity ${fmt.num(m.similarity)} against threshold ${fmt.num(answer.threshold, 2)}`);
+  }
+  if (d && d.failed) parts.push(`held back by ${d.failed}`);
+  if (d && d.reason) parts.push(d.reason);
+  if (answer.stay_frames > 0) parts.push(`the robot's current stay (${answer.stay_frames} frames) left out`);
   if (answer.margin !== null) parts.push(`margin over the best other submap ${fmt.num(answer.margin)}`);
   return parts.join("; ");
 }
 
+const STATUS_TEXT = { loop: "loop closure", candidate: "candidate (not a loop yet)", new_place: "new place" };
+
 function showAnswer(result, atlas, answer) {
-  const decision = answer.loop_closure;
+  const status = answer.status;
   const predicted = answer.predicted_submap.available
     ? `classifier: submap ${answer.predicted_submap.submap} (p = ${fmt.num(answer.predicted_submap.probability, 2)})`
     : answer.predicted_submap.reason;
   result.replaceChildren(
     h("div", { class: "card" },
-      h("h2", {}, "Decision: ", h("span", { class: `badge ${decision ? "ok" : "bad"}`, "data-testid": "decision" }, decision ? "loop closure" : "no loop closure")),
+      h("h2", {}, "Decision: ", h("span", { class: `badge ${status === "loop" ? "ok" : "bad"}`, "data-testid": "decision" }, STATUS_TEXT[status] ?? status)),
       h("p", { "data-testid": "why" }, why(answer)),
       answer.match ? h("p", {}, "Best match: frame ", h("strong", { "data-testid": "best-frame" }, answer.match.frame_id),
         ` in submap `, h("strong", { "data-testid": "best-submap" }, answer.match.submap), ` (robot ${answer.match.robot_id})`) : null,

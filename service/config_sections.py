@@ -180,9 +180,10 @@ class DecisionSettings(BaseSettings):
     exclude_stay: bool = Field(
         True,
         description="Nor do the frames of its current stay: its newest frames that still show the "
-        "query's place (calibrated score at least loop_score_min), up to the first two that do "
-        "not. A robot that stands still does not close a loop with itself; one that left and "
-        "came back does. Needs a calibrated model version (service.app.stay).",
+        "query's place (calibrated score at least loop_score_min), back to where two frames in a "
+        "row show another place (score below 1) or eight do not show it. A robot that stands "
+        "still does not close a loop with itself; one that left and came back does. Needs a "
+        "calibrated model version (service.app.stay).",
     )
 
 

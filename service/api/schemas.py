@@ -258,8 +258,8 @@ class QueryOut(BaseModel):
     stay_frames: int = Field(
         0,
         description="How many of the asking robot's newest frames still show this place (its "
-        "current stay, up to the first two frames that do not) and were left out like its "
-        "recent frames: a robot that has not left a place does not close a loop with itself. "
+        "current stay, back to where the robot was elsewhere) and were left out like its recent "
+        "frames: a robot that has not left a place does not close a loop with itself. "
         "0 without a robot, on an uncalibrated model version, or with LOOPNET_EXCLUDE_STAY off.",
     )
 

@@ -26,12 +26,11 @@ from service.ml.calibration import Calibration, CalibrationConfig, CalibrationIn
 from service.ml.heads import LoopNetHeads
 from service.ml.impostors import frames_for_impostor_model
 from service.ml.inlier_threshold import (
-    FLOOR,
-    NEAR_DUPLICATE,
     InlierThreshold,
     fit_inlier_threshold,
     hard_impostors,
     midpoints,
+    near_duplicate,
     one_stop,
 )
 from service.ml.pipeline import embed_vectors
@@ -155,9 +154,8 @@ def calibrate_min_inliers(
     order = np.asarray(inputs.order)
     pairs = hard_impostors(embeddings, inputs.robots, order, stays=stays)
     halfway = midpoints(inputs.robots, order, pairs)
-    ids = order
     wanted = sorted(
-        {int(ids[i]) for pair in pairs for i in pair} | {int(ids[m]) for m in halfway if m >= 0}
+        {int(order[i]) for pair in pairs for i in pair} | {int(order[m]) for m in halfway if m >= 0}
     )
     with sessions() as session:
         atlas = session.get(Atlas, atlas_id)
@@ -174,14 +172,14 @@ def calibrate_min_inliers(
 
     inliers, stops = [], 0
     for (i, j), middle in zip(pairs, halfway, strict=True):
-        a, b = int(ids[i]), int(ids[j])
+        a, b = int(order[i]), int(order[j])
         if a not in stored or b not in stored:
             continue  # deleted meanwhile
         found = verifier.verify(view(a), view(b)).inliers
-        m = int(ids[middle]) if middle >= 0 else None
+        m = int(order[middle]) if middle >= 0 else None
         keypoints = min(stored[a].count, stored[b].count)
         if (
-            found >= max(FLOOR, NEAR_DUPLICATE * keypoints)  # else no need to look halfway
+            near_duplicate(found, keypoints)  # else no need to verify the halfway frame
             and m in stored
             and one_stop(found, verifier.verify(view(a), view(m)).inliers, keypoints)
         ):

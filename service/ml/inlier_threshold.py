@@ -107,8 +107,13 @@ def one_stop(pair_inliers: int, midpoint_inliers: int, keypoints: int) -> bool:
     gardenspoint_cohog200, 15-22 inliers of 275-392 keypoints). The embedding need not see a
     stop: on Nordland's dark stops, frames 250 inliers apart had calibrated cosines of 0.15-0.4.
     """
-    duplicate = pair_inliers >= max(FLOOR, NEAR_DUPLICATE * keypoints)
-    return duplicate and midpoint_inliers >= pair_inliers / 2
+    return near_duplicate(pair_inliers, keypoints) and midpoint_inliers >= pair_inliers / 2
+
+
+def near_duplicate(pair_inliers: int, keypoints: int) -> bool:
+    """Two views of one spot: ``NEAR_DUPLICATE`` of the fewer keypoints (at least FLOOR) are
+    inliers; only such a pair is worth checking halfway (:func:`one_stop`)."""
+    return pair_inliers >= max(FLOOR, NEAR_DUPLICATE * keypoints)
 
 
 def _reader(rows: np.ndarray) -> Callable[[int, int], np.ndarray]:

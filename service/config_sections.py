@@ -212,6 +212,15 @@ class SequenceSettings(BaseSettings):
         "proposes without a search; a frame stored without one (POST /frames) costs one index "
         "search per request.",
     )
+    trajectory_contrast_frames: int = Field(
+        10,
+        ge=0,
+        le=100,
+        description="A robot's sequence is scored on trajectory-contrasted vectors: each frame's "
+        "vector less the mean of the N frames its robot took just before it in the same "
+        "sequence (the query's too), so two traversals under different light or season compare "
+        "on what they show (service.ml.sequences.contrast; 0: plain vectors).",
+    )
     sequence_margin_min: float = Field(
         6.0,
         ge=0.0,

@@ -162,6 +162,14 @@ class SequenceOut(BaseModel):
         "over at least LOOPNET_CONSISTENCY_FRAMES aligned frames, and this query's frame alone "
         "favours the aligned frame (its standardised similarity is at least 1)."
     )
+    contrast_frames: int = Field(
+        0,
+        description="How many of the robot's frames just before this one the sequence was "
+        "contrasted with: every frame's vector less the mean of its robot's previous frames, so "
+        "a change of light or season shared by a traversal cancels "
+        "(LOOPNET_TRAJECTORY_CONTRAST_FRAMES); 0: scored on plain vectors (contrast off, or "
+        "the robot's first frame of a sequence).",
+    )
 
 
 class DecisionOut(BaseModel):

@@ -1,6 +1,7 @@
 """One atlas's frames as sequence scoring sees them: their vectors (the index's), their
-trajectories (each robot's frames in timestamp order, arrival order without one) and the map's
-similarity moments.
+trajectories (each robot's frames in timestamp order, arrival order without one), the map's
+similarity moments, and each frame's trajectory-contrasted vector with its moments
+(:mod:`service.ml.sequences.contrast`).
 
 Built from the database's frame rows and the loaded index, then kept in step with the index's
 journal of adds and removals, per process: a cache of what the database and the index hold,
@@ -19,6 +20,7 @@ from sqlalchemy.orm import Session
 
 from service.app.trajectory_growth import GrowingTrajectories
 from service.ml.sequences import MapMoments, Trajectories
+from service.ml.sequences.contrast import contrasted_frames
 from service.storage import repository as repo
 
 if TYPE_CHECKING:
@@ -35,6 +37,7 @@ class SequenceMap:
         generation: int,
         dim: int,
         max_gap_seconds: float | None,
+        contrast_window: int = 0,
     ) -> None:
         self.index_key = index_key  # id() of the index object it follows
         self.generation = generation  # the index journal generation it reflects
@@ -48,6 +51,9 @@ class SequenceMap:
         self._by_id: tuple[np.ndarray, np.ndarray] | None = None  # ids sorted, their positions
         self.moments = MapMoments(dim)
         self.growth = GrowingTrajectories(max_gap_seconds)
+        self.contrast_window = contrast_window  # 0: no contrasted vectors
+        self._contrasted = np.zeros((0, dim), dtype=np.float32)
+        self.contrast_moments = MapMoments(dim)
 
     @property
     def trajectories(self) -> Trajectories:
@@ -61,10 +67,15 @@ class SequenceMap:
     def vectors(self) -> np.ndarray:
         return self._vectors[: self.count]
 
+    @property
+    def contrasted(self) -> np.ndarray:
+        return self._contrasted[: self.count]
+
     def append(self, rows: list[tuple[int, str, float | None]], vectors: np.ndarray) -> None:
         """Frames ``(id, robot, timestamp)`` with their vectors, after the ones held."""
         if not rows:
             return
+        first = self.count
         needed = self.count + len(rows)
         if needed > len(self._ids):
             capacity = max(needed, 2 * len(self._ids), 64)
@@ -86,6 +97,25 @@ class SequenceMap:
             self.growth = GrowingTrajectories.build(
                 self.robots, self.timestamps, self.max_gap_seconds
             )
+        if self.contrast_window:
+            self._contrast_from(first if in_order else 0)
+
+    def _contrast_from(self, first: int) -> None:
+        """Contrast frames ``first..count-1`` (0: all, after the trajectories were rebuilt and
+        any frame's context may have changed); frames before ``first`` keep theirs, which
+        appending at the end of each robot's time order cannot change."""
+        if len(self._contrasted) < len(self._vectors):
+            grown = np.zeros_like(self._vectors)
+            grown[:first] = self._contrasted[:first]
+            self._contrasted = grown
+        fresh = contrasted_frames(
+            self.lookup, self.trajectories, np.arange(first, self.count), self.contrast_window
+        )
+        self._contrasted[first : self.count] = fresh
+        if first == 0:
+            self.contrast_moments = MapMoments.of(fresh)
+        else:
+            self.contrast_moments.add(fresh)
 
     def positions(self, frame_ids: np.ndarray | list[int]) -> np.ndarray:
         """Positions of ``frame_ids`` (-1 for frames the map does not hold), by binary search
@@ -104,6 +134,10 @@ class SequenceMap:
 
     def lookup(self, positions: np.ndarray) -> np.ndarray:
         rows: np.ndarray = np.take(self._vectors, positions, axis=0)
+        return rows
+
+    def contrasted_lookup(self, positions: np.ndarray) -> np.ndarray:
+        rows: np.ndarray = np.take(self._contrasted, positions, axis=0)
         return rows
 
 
@@ -133,8 +167,9 @@ def _added_rows_and_vectors(
 class SequenceMaps:
     """The :class:`SequenceMap` of each loaded atlas, brought up to date on use."""
 
-    def __init__(self, max_gap_seconds: float | None) -> None:
+    def __init__(self, max_gap_seconds: float | None, contrast_window: int = 0) -> None:
         self.max_gap_seconds = max_gap_seconds
+        self.contrast_window = contrast_window
         self._maps: dict[int, SequenceMap] = {}
         self._lock = threading.Lock()
 
@@ -164,7 +199,13 @@ class SequenceMaps:
                     cached.append(*_added_rows_and_vectors(session, state, ids[new], added[new]))
                 cached.generation = generation
                 return cached
-        fresh = SequenceMap(id(state.index), generation, state.index.dim, self.max_gap_seconds)
+        fresh = SequenceMap(
+            id(state.index),
+            generation,
+            state.index.dim,
+            self.max_gap_seconds,
+            self.contrast_window,
+        )
         fresh.append(*_rows_and_vectors(session, state))
         self._maps[state.atlas_id] = fresh
         return fresh

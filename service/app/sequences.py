@@ -46,6 +46,7 @@ from service.ml.sequences import (
     match_sequence,
     sequence_starts,
 )
+from service.ml.sequences.contrast import contrasted_query
 from service.storage import repository as repo
 
 # Every frame of the sequence proposes candidates (see SequenceSettings); the settings' default.
@@ -149,7 +150,9 @@ class SequenceScorer:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.maps = SequenceMaps(settings.sequence_max_gap_seconds)
+        self.maps = SequenceMaps(
+            settings.sequence_max_gap_seconds, settings.trajectory_contrast_frames
+        )
         self.consistency = ConsistencySettings(required=settings.consistency_frames)
 
     def answer(
@@ -164,7 +167,8 @@ class SequenceScorer:
     ) -> RobotEvidence:
         """The robot's sequence answer (None when off) and its previous observations; ``own``:
         the robot's frames as the request has read them (None: read here)."""
-        longest = max(robot.sequence_length, self.consistency.required)
+        contrast = self.settings.trajectory_contrast_frames
+        longest = max(robot.sequence_length, self.consistency.required, contrast + 1)
         previous = query_sequence(
             session, state.atlas_id, robot, longest, self.settings.sequence_max_gap_seconds
         )
@@ -233,9 +237,15 @@ class SequenceScorer:
             length=length,
             seed_frames=self.settings.sequence_seed_frames,
         )
+        contrasted, contrast_frames = self._contrasted(view, newest, earlier)
         earlier = earlier[-(settings.length - 1) :] if settings.length > 1 else []
         positions = np.array([e.position for e in earlier], dtype=np.int64)
-        queries = np.vstack([view.lookup(positions), newest[None].astype(np.float32)])
+        lookup, moments = view.lookup, view.moments
+        if contrasted is not None:  # both sides against their trajectories' recent frames
+            lookup, moments = view.contrasted_lookup, view.contrast_moments
+        queries = np.vstack(
+            [lookup(positions), (newest if contrasted is None else contrasted)[None]]
+        ).astype(np.float32)
         seed_lists = [np.zeros(0, np.int64)] * len(earlier) + [
             self._positions(view, [h.frame_id for h in hits[: settings.seeds]])
         ]
@@ -251,9 +261,9 @@ class SequenceScorer:
         matches = match_sequence(
             queries,
             seed_lists,
-            view.lookup,
+            lookup,
             view.trajectories,
-            view.moments,
+            moments,
             settings,
             eligible=lambda frames: eligible[frames],
             top=None,
@@ -270,12 +280,27 @@ class SequenceScorer:
             frame_id=int(view.ids[best.reference]),
             margin=round(float(distinct.margin), 6),
             rival_frame_id=int(view.ids[distinct.rival]) if distinct.rival is not None else None,
+            contrast_frames=contrast_frames,
             passed=bool(
                 distinct.margin >= self.settings.sequence_margin_min
                 and best.length >= self.consistency.required
                 and best.newest_z >= NEWEST_Z_MIN
             ),
         )
+
+    def _contrasted(
+        self, view: SequenceMap, newest: np.ndarray, earlier: list[Earlier]
+    ) -> tuple[np.ndarray | None, int]:
+        """The newest frame's trajectory-contrasted vector (against the robot's previous
+        frames of this sequence, up to the window) and how many frames it was contrasted with;
+        (None, 0) when contrast is off or the robot has no earlier frame here: the sequence is
+        then scored on plain vectors."""
+        window = view.contrast_window
+        if not window or not earlier:
+            return None, 0
+        before = np.array([e.position for e in earlier[-window:]], dtype=np.int64)
+        vector = contrasted_query(newest, view.lookup(before))
+        return vector, len(before) if vector is not None else 0
 
     @staticmethod
     def _positions(view: SequenceMap, frame_ids: Sequence[int] | np.ndarray) -> np.ndarray:

@@ -61,6 +61,9 @@ class ServedAnswers:
     threshold: float
     verification: dict[str, Any] = field(default_factory=dict)
     sequence_length: int = 0
+    # per query, its answer's candidates in served order: (reference, similarity, score,
+    # inliers, inlier ratio), NaN where absent, to study the re-rank offline
+    candidates: list[list[list[float]]] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -69,6 +72,7 @@ class ServedAnswers:
             ranking=Ranking(self.ranking.indices[keep], self.ranking.scores[keep]),
             status=[self.status[i] for i in keep],
             parts=self.parts[keep],
+            candidates=[self.candidates[i] for i in keep] if self.candidates else [],
             query_ms=self.query_ms[keep],
         )
 
@@ -114,6 +118,7 @@ def served_answers(
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
     indices, scores, status, parts, query_ms = [], [], [], [], []
+    candidates: list[list[list[float]]] = []
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
@@ -143,6 +148,7 @@ def served_answers(
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
             parts.append(decision_parts(answer))
+            candidates.append(candidate_rows(answer, frame_to_reference))
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -151,7 +157,27 @@ def served_answers(
         settings.loop_probability_min,
         {"matcher": config.matcher, "top": config.top, "min_inliers": config.min_inliers},
         sequence_length,
+        candidates,
     )
+
+
+def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> list[list[float]]:
+    """The answer's candidates in served order as (reference index or -1, similarity,
+    calibrated score, inliers, inlier ratio), NaN where a candidate lacks one."""
+
+    def number(value: float | None) -> float:
+        return float("nan") if value is None else round(float(value), 4)
+
+    return [
+        [
+            float(frame_to_reference.get(c.frame_id, -1)),
+            number(c.similarity),
+            number(c.score),
+            number(c.inliers),
+            number(c.inlier_ratio),
+        ]
+        for c in answer.candidates
+    ]
 
 
 def answered_frames(answer: QueryResult) -> list[int]:
@@ -233,6 +259,7 @@ def served_method(
         "parts": PARTS,
         "per_query_parts": np.round(served.parts, 4).tolist(),
         "per_query_status": served.status,
+        "per_query_candidates": served.candidates,
         "per_query_right": correct_matrix(served.ranking, [q.positives for q in dataset.queries])[
             :, 0
         ]

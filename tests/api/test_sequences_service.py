@@ -208,15 +208,21 @@ def test_two_replicas_on_postgresql_answer_alike(
     assert answer["frame_id"] == ids[24] and answer["length"] == 5
 
 
-def observe(client: TestClient, frame: FrameFeatures, t: float, **fields: object) -> QueryResult:
+def observe(
+    client: TestClient,
+    frame: FrameFeatures,
+    t: float,
+    exclusion: dict[str, object] | None = None,
+    **fields: object,
+) -> QueryResult:
     """The rover observes a frame (query, then insert) through the service, as ``observe`` over
-    HTTP does after extraction."""
+    HTTP does after extraction; ``exclusion`` overrides the filter's recent-frame rules."""
     service = client.app.state.runtime.service  # type: ignore[attr-defined]
     result, _ = service.observe_features(
         atlas_name="campus",
         fields=FrameFields("s0", "rover", timestamp=t),
         features=frame,
-        query_filter=service.query_filter(robot_id="rover", timestamp=t),
+        query_filter=service.query_filter(robot_id="rover", timestamp=t, **(exclusion or {})),
         **fields,
     )
     return result  # type: ignore[no-any-return]
@@ -276,8 +282,12 @@ def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
     data_dir: Path, pipeline
 ) -> None:  # type: ignore[no-untyped-def]
     """Every frame alone matches a decoy, so the single-frame answers never pass; the
-    sequence's margin over its rival does, and names the frame to close the loop with."""
-    with make_client(data_dir, pipeline, sequence_margin_min=3.0) as client:
+    sequence's margin over its rival does, and names the frame to close the loop with. On
+    plain vectors: the places here share no condition for trajectory contrast to remove, so
+    contrasting the rover's first few frames would only add noise to the margin."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
         wait_ready(client)
         assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
         assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
@@ -294,3 +304,43 @@ def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
     first = answers[0]  # one frame aligned: fewer than consistency_frames, never passed
     assert first.sequence is not None and not first.sequence.passed
     assert first.loop_frame_id is None
+
+
+@pytest.mark.parametrize("contrast", [10, 0])
+def test_trajectory_contrast_finds_the_place_across_a_change_of_condition(
+    data_dir: Path, pipeline, contrast: int
+) -> None:  # type: ignore[no-untyped-def]
+    """The mapper drove places 0..39 in summer (each frame carries a shared summer component);
+    the rover drives new places 40..45 and then places 20..29 in winter. Every winter frame is
+    far more like the rover's own earlier winter frames than like the summer frame of its place:
+    on plain vectors its sequence aligns with its own past; contrasted with the frames just
+    before each one, the shared condition cancels and the sequence finds the summer places."""
+    summer, winter = 2.0 * G[46], 2.0 * G[47]
+    with make_client(data_dir, pipeline, trajectory_contrast_frames=contrast) as client:
+        wait_ready(client)
+        assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        ids = [
+            insert(client, pipeline, features(G[p] + summer), "mapper", float(p))
+            for p in range(PLACES)
+        ]
+        route = [40, 41, 42, 43, 44, 45, *range(20, 30)]
+        answers = [
+            observe(
+                client,
+                features(G[place] + winter),
+                1000.0 + t,
+                {"exclude_recent_frames": 3, "exclude_recent_seconds": 0.0},
+                sequence_length=5,
+            )
+            for t, place in enumerate(route)
+        ]
+    revisits = answers[6 + 4 :]  # the sequence has five frames of the mapped stretch
+    found = [a.sequence.frame_id if a.sequence else None for a in revisits]
+    expected = [ids[place] for place in route[6 + 4 :]]
+    assert answers[-1].sequence is not None
+    assert answers[-1].sequence.contrast_frames == contrast  # the rover's last ten frames
+    if contrast:
+        assert found == expected
+    else:
+        assert not any(f == e for f, e in zip(found, expected, strict=True))

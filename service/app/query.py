@@ -318,6 +318,8 @@ class AtlasQueries(Observations):
         if robot is not None:
             start = time.perf_counter()
             evidence = self.sequences.answer(session, state, robot, embedding, hits, selection, own)
+            if evidence.hit_order is not None:  # a robot's frame: contrasted with its past
+                hits = [hits[i] for i in evidence.hit_order]
             timings["sequence"] = (time.perf_counter() - start) * 1000.0
         names = repo.submap_names(session, atlas_id=atlas.id)
         frames = repo.frames_by_id(session, frame_ids=[h.frame_id for h in hits])

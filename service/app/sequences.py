@@ -96,6 +96,8 @@ class RobotEvidence:
     position: dict[int, int]  # frame id -> map position (the map's, read-only here)
     trajectories: Trajectories
     consistency: ConsistencySettings
+    # the search's hits in trajectory-contrast order (indices; None: contrast unavailable)
+    hit_order: list[int] | None = None
 
     def verdict(self, frame_id: int | None, passed: bool) -> Verdict:
         """The newest single-frame answer (its matched frame and whether it passed) judged with
@@ -131,6 +133,22 @@ def query_sequence(
     starts = sequence_starts(times, max_gap_seconds=max_gap)
     first = int(np.flatnonzero(starts)[-1])
     return [frame_id for frame_id, _ in recent[first:]]
+
+
+def contrast_order(
+    view: SequenceMap, contrasted: np.ndarray | None, hits: list[Hit]
+) -> list[int] | None:
+    """The hits' order by trajectory-contrasted cosine with the query (best first; a hit the
+    map does not hold yet goes last, in search order); None without a contrasted query. The
+    search shortlists on plain vectors, the contrast orders the shortlist: on the development
+    sets ordering the 50 best this way kept nearly all of a full contrasted search's gain."""
+    if contrasted is None or not hits:
+        return None
+    positions = view.positions([h.frame_id for h in hits])
+    held = positions >= 0
+    similarity = np.full(len(hits), -np.inf)
+    similarity[held] = view.contrasted_lookup(positions[held]) @ contrasted
+    return [int(i) for i in np.argsort(-similarity, kind="stable")]
 
 
 def _eligible(view: SequenceMap, selection: Selection) -> np.ndarray:
@@ -187,13 +205,29 @@ class SequenceScorer:
             own = own or RobotFrames(session, state.atlas_id, robot.robot_id)
             stays = self._stays(own, state, view, robot, previous)
             eligible[stays[stays >= 0]] = False
+            contrasted = self._contrasted(view, newest, earlier)
             sequence = None
             if robot.sequence_length > 0 and view.count:
                 sequence = self._score(
-                    state, view, newest, hits, earlier, eligible, selection, robot.sequence_length
+                    state,
+                    view,
+                    newest,
+                    contrasted,
+                    hits,
+                    earlier,
+                    eligible,
+                    selection,
+                    robot.sequence_length,
                 )
             past = self._previous(state, view, earlier, eligible, selection)
-            return RobotEvidence(sequence, past, view.position, view.trajectories, self.consistency)
+            return RobotEvidence(
+                sequence,
+                past,
+                view.position,
+                view.trajectories,
+                self.consistency,
+                contrast_order(view, contrasted[0], hits),
+            )
 
     def _stays(
         self,
@@ -223,6 +257,7 @@ class SequenceScorer:
         state: LoadedAtlas,
         view: SequenceMap,
         newest: np.ndarray,
+        contrast: tuple[np.ndarray | None, int],
         hits: list[Hit],
         earlier: list[Earlier],
         eligible: np.ndarray,
@@ -237,7 +272,7 @@ class SequenceScorer:
             length=length,
             seed_frames=self.settings.sequence_seed_frames,
         )
-        contrasted, contrast_frames = self._contrasted(view, newest, earlier)
+        contrasted, contrast_frames = contrast
         earlier = earlier[-(settings.length - 1) :] if settings.length > 1 else []
         positions = np.array([e.position for e in earlier], dtype=np.int64)
         lookup, moments = view.lookup, view.moments

@@ -337,10 +337,13 @@ def test_trajectory_contrast_finds_the_place_across_a_change_of_condition(
         ]
     revisits = answers[6 + 4 :]  # the sequence has five frames of the mapped stretch
     found = [a.sequence.frame_id if a.sequence else None for a in revisits]
+    matched = [a.match.frame_id if a.match else None for a in revisits]  # single frame
     expected = [ids[place] for place in route[6 + 4 :]]
     assert answers[-1].sequence is not None
     assert answers[-1].sequence.contrast_frames == contrast  # the rover's last ten frames
     if contrast:
         assert found == expected
+        assert matched == expected  # the candidates are ordered by contrast too
     else:
         assert not any(f == e for f, e in zip(found, expected, strict=True))
+        assert not any(f == e for f, e in zip(matched, expected, strict=True))

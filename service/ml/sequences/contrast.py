@@ -22,7 +22,7 @@ import numpy as np
 from service.ml.sequences.trajectories import Trajectories
 
 DEFAULT_CONTRAST_FRAMES = 10
-BLOCK = 1024  # frames contrasted at once (window x block x dim values in memory: 40 MiB at 1,024-d)
+BLOCK = 4096  # frames contrasted at once
 
 
 def context_positions(trajectories: Trajectories, frames: np.ndarray, window: int) -> np.ndarray:
@@ -49,20 +49,23 @@ def contrasted_frames(
     window: int,
 ) -> np.ndarray:
     """The contrasted vectors of ``frames`` (positions), each against its own context;
-    ``vectors_at(positions)`` gives the frames' unit vectors."""
+    ``vectors_at(positions)`` gives the frames' unit vectors. Summed one step back at a time,
+    so memory stays at two ``block x dim`` arrays whatever the window."""
     frames = np.asarray(frames, dtype=np.int64).reshape(-1)
     out = []
     for start in range(0, len(frames), BLOCK):
         chunk = frames[start : start + BLOCK]
-        context = context_positions(trajectories, chunk, window)
-        valid = context >= 0
-        counts = valid.sum(axis=1)
-        gathered = vectors_at(np.where(valid, context, 0).reshape(-1)).reshape(
-            len(chunk), window, -1
-        )
-        sums = (gathered * valid[:, :, None]).sum(axis=1)
-        means = sums / np.maximum(counts, 1)[:, None]
-        out.append(contrast(vectors_at(chunk), means, counts))
+        own = vectors_at(chunk)
+        sums = np.zeros(own.shape, np.float32)
+        counts = np.zeros(len(chunk), np.int64)
+        for back in range(1, window + 1):
+            before = trajectories.step(chunk, np.full(len(chunk), -back))
+            held = before >= 0
+            if not held.any():
+                break
+            sums[held] += vectors_at(before[held])
+            counts += held
+        out.append(contrast(own, sums / np.maximum(counts, 1)[:, None], counts))
     return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
 
 

@@ -262,6 +262,14 @@ class JobSettings(BaseSettings):
         "once an atlas has collected this many verified revisit pairs since its last one "
         "(0: never, the default; operators submit adapt jobs themselves).",
     )
+    pairs_from_sequence_loops: bool = Field(
+        True,
+        description="Keep an observation's loop that its robot's sequence decided without "
+        "geometric verification as a revisit pair too (source 'sequence'); off: only "
+        "geometrically verified closures (source 'observe') and operators' pairs. On Nordland's "
+        "winter drive the sequence closes 27x more loops than geometry verifies, all right "
+        "(benchmarks/RESULTS.md, issue 26).",
+    )
     job_stale_seconds: float = Field(
         600.0,
         gt=0,

@@ -155,6 +155,11 @@ class PairOut(BaseModel):
     other_robot_id: str
     submap: str
     other_submap: str
-    source: str = Field(description="observe (a verified closure) or operator (labelled)")
-    inliers: int | None = Field(description="RANSAC inliers of a verified closure.")
+    source: str = Field(
+        description="observe (a geometrically verified closure), sequence (a loop the robot's "
+        "sequence decided, not verified by geometry) or operator (labelled)"
+    )
+    inliers: int | None = Field(
+        description="RANSAC inliers of the pair's match (null when labelled or not verified)."
+    )
     created_at: datetime

@@ -1,9 +1,12 @@
 """Revisit pairs: two stored frames of one place, what an adaptation job learns from.
 
 ``observe`` records one whenever its best candidate is geometrically verified (inliers at or
-above the atlas's minimum): the new frame and the frame it matched, often across a change of
-condition or robot. Operators label more through the API (and delete wrong ones). A ``query``
-keeps no frame, so it gives no pair. Pairs are chosen for a job by robot, time and submap
+above the atlas's minimum; source ``observe``): the new frame and the frame it matched, often
+across a change of condition or robot; and, unless the setting turns it off, whenever it
+answers ``loop`` on its robot's sequence without such a match (source ``sequence``: the new
+frame and the loop's frame), which on low-texture or changed frames is most of the loops it
+closes. Operators label more through the API (and delete wrong ones). A ``query`` keeps no
+frame, so it gives no pair. Pairs are chosen for a job by robot, time and submap
 (:class:`PairFilter`).
 """
 
@@ -28,7 +31,7 @@ from service.storage.models import Frame, RevisitPair, Submap
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("observe", "operator")
+SOURCES = ("observe", "sequence", "operator")
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,24 @@ class PairRow:
     other_submap: str
 
 
+def closure_partner(
+    result: QueryResult, *, from_sequence_loops: bool
+) -> tuple[int, str, int | None] | None:
+    """The frame an observation's answer pairs its new frame with, the pair's source and the
+    partner's inliers: the verified match (``observe``), else, when ``from_sequence_loops``,
+    the frame of a ``loop`` answer that geometry did not verify (``sequence``); None when the
+    answer is neither."""
+    match = result.match
+    if match is not None and match.verified:
+        return match.frame_id, "observe", match.inliers
+    if from_sequence_loops and result.status == "loop" and result.loop_frame_id is not None:
+        inliers = next(
+            (c.inliers for c in result.candidates if c.frame_id == result.loop_frame_id), None
+        )
+        return result.loop_frame_id, "sequence", inliers
+    return None
+
+
 def record_verified(
     sessions: sessionmaker[Session],
     settings: Settings,
@@ -50,24 +71,25 @@ def record_verified(
     frame_id: int,
     enqueue: Callable[[int], None] | None = None,
 ) -> int | None:
-    """Keep an observation's verified closure as a pair (its stored frame ``frame_id`` and the
-    match); queues an adaptation job when the atlas has collected its setting's number of new
-    pairs. Returns the pair's id, None when the answer is no verified closure."""
-    match = result.match
-    if match is None or not match.verified or match.frame_id == frame_id:
+    """Keep an observation's closure as a pair (its stored frame ``frame_id`` and the partner
+    :func:`closure_partner` names); queues an adaptation job when the atlas has collected its
+    setting's number of new pairs. Returns the pair's id, None when the answer is no closure."""
+    partner = closure_partner(result, from_sequence_loops=settings.pairs_from_sequence_loops)
+    if partner is None or partner[0] == frame_id:
         return None
+    other_id, source, inliers = partner
     job_id = None
     with transaction(sessions) as session:
         frame = session.get(Frame, frame_id)
-        other = session.get(Frame, match.frame_id)
+        other = session.get(Frame, other_id)
         if frame is None or other is None or frame.atlas_id != other.atlas_id:
             return None  # deleted since the search
         pair = RevisitPair(
             atlas_id=frame.atlas_id,
             frame_id=frame.id,
             other_frame_id=other.id,
-            source="observe",
-            inliers=match.inliers,
+            source=source,
+            inliers=inliers,
         )
         session.add(pair)
         session.flush()
@@ -177,6 +199,13 @@ def pair_frames(session: Session, *, atlas_id: int, where: PairFilter) -> list[t
     """The (frame, other frame) ids of every pair under ``where``, oldest first."""
     query = _filtered(atlas_id, where).order_by(RevisitPair.id)
     return [(row[0].frame_id, row[0].other_frame_id) for row in session.execute(query)]
+
+
+def pair_sources(session: Session, *, atlas_id: int, where: PairFilter) -> dict[str, int]:
+    """How many pairs under ``where`` came from each source."""
+    chosen = _filtered(atlas_id, where).subquery()
+    rows = session.execute(select(chosen.c.source, func.count()).group_by(chosen.c.source))
+    return {str(source): int(n) for source, n in rows}
 
 
 def count_pairs(session: Session, *, atlas_id: int, after_id: int = 0) -> int:

@@ -300,6 +300,7 @@ class RevisitPair(Base):
     other_frame_id: Mapped[int] = mapped_column(
         ForeignKey("frames.id", ondelete="CASCADE"), index=True
     )
-    source: Mapped[str] = mapped_column(String(16))  # observe | operator
-    inliers: Mapped[int | None] = mapped_column(Integer)  # None: labelled by an operator
+    source: Mapped[str] = mapped_column(String(16))  # observe | sequence | operator
+    # None: labelled by an operator, or a sequence's loop frame that was not verified
+    inliers: Mapped[int | None] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)

@@ -278,15 +278,21 @@ def test_observed_frames_propose_without_a_search_and_answer_as_searched_ones(
     assert kept["sequence"]["frame_id"] == map_frame_ids(app)[24]
 
 
+@pytest.mark.parametrize("pairs_from_sequence_loops", [True, False])
 def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
-    data_dir: Path, pipeline
+    data_dir: Path, pipeline, pairs_from_sequence_loops: bool
 ) -> None:  # type: ignore[no-untyped-def]
     """Every frame alone matches a decoy, so the single-frame answers never pass; the
-    sequence's margin over its rival does, and names the frame to close the loop with. On
+    sequence's margin over its rival does, and names the frame to close the loop with; that
+    loop is kept as a revisit pair (source ``sequence``) unless the setting says no. On
     plain vectors: the places here share no condition for trajectory contrast to remove, so
     contrasting the rover's first few frames would only add noise to the margin."""
     with make_client(
-        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+        data_dir,
+        pipeline,
+        sequence_margin_min=3.0,
+        trajectory_contrast_frames=0,
+        pairs_from_sequence_loops=pairs_from_sequence_loops,
     ) as client:
         wait_ready(client)
         assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
@@ -296,6 +302,18 @@ def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
             observe(client, ambiguous(place, DECOYS[i]), 100.0 + i, sequence_length=5)
             for i, place in enumerate([20, 21, 22, 23, 24])
         ]
+        listed = client.get("/v1/atlases/campus/pairs", params={"robot": "rover"})
+        assert listed.status_code == 200, listed.text
+        pairs = listed.json()
+    loops = [a.loop_frame_id for a in answers if a.status == "loop"]
+    assert loops  # the newest at least (below)
+    if pairs_from_sequence_loops:  # one pair per loop, with the loop's frame; none verified
+        assert [(p["source"], p["other_frame_id"], p["inliers"]) for p in reversed(pairs)] == [
+            ("sequence", frame, None) for frame in loops
+        ]
+        assert all(p["robot_id"] == "rover" and p["other_robot_id"] == "mapper" for p in pairs)
+    else:
+        assert pairs == []
     newest = answers[-1]
     assert newest.match is not None and newest.match.frame_id == ids[DECOYS[4]]
     assert newest.sequence is not None and newest.sequence.frame_id == ids[24]

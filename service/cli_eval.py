@@ -109,6 +109,15 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:  # type: ignore[t
         "partner references (the revisit protocol as served); '' for none",
     )
     ev.add_argument(
+        "--adapt-pairs-from-stream",
+        default="",
+        metavar="P[,P...]",
+        help="the pairs protocol on a drive: the first P %% of the queries observed in order by "
+        "one robot (its sequence on), every closure observe kept (verified or a sequence's "
+        "loop) given to a real adapt job, the rest of the queries answered as served before and "
+        "after; '' for none",
+    )
+    ev.add_argument(
         "--adapt-shrinkage",
         type=float,
         help="the adapt job's shrinkage of the pairs' covariance (default: Ledoit-Wolf's)",
@@ -281,6 +290,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         adapt_method=args.adapt_method,
         adapt_observe_shots=_csv_list(int, args.adapt_pairs_from_observe),
         adapt_labelled_shots=_csv_list(int, args.adapt_pairs_labelled),
+        adapt_stream_percents=_csv_list(int, args.adapt_pairs_from_stream),
         verify=_csv_list(str, args.verify),
         verify_top=args.verify_top,
         ransac_backend=settings.ransac_backend,

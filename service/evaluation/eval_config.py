@@ -51,6 +51,8 @@ class EvalConfig:
             ``served``.
         adapt_labelled_shots: the same with the shots labelled as pairs with their partner
             references (the revisit protocol as served).
+        adapt_stream_percents: the same with the first P % of the queries driven in order by
+            one robot through observe (its sequence on), the rest the test queries.
     """
 
     dataset: Path
@@ -80,6 +82,7 @@ class EvalConfig:
     adapt_method: AdaptMethod = DEFAULT_METHOD
     adapt_observe_shots: tuple[int, ...] = ()
     adapt_labelled_shots: tuple[int, ...] = ()
+    adapt_stream_percents: tuple[int, ...] = ()
     command: str = ""
     verify: tuple[str, ...] = ()
     verify_top: int = 5

@@ -17,13 +17,19 @@ With the source ``labelled`` the same run measures the revisit protocol *as serv
 shots are stored and each is labelled as a pair with its partner reference (the ground-truth
 pairs :mod:`service.evaluation.adaptation_pass` hands to ``adapt_heads``, here through the
 pairs use case, the job runner and the served decision).
+
+With the source ``stream`` the robot drives: the first P % of the queries, in their order (a
+traversal's route order), are observed one second apart in one submap, so its sequence and
+trajectory contrast work as they do for a fleet's robot, and every closure observe keeps
+(verified, or a loop of its sequence) is a pair. The test queries are the rest of the drive:
+places the job never saw a pair of, so what it learned must be the change of condition.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,7 +37,7 @@ import numpy as np
 from service.app.catalog import AtlasService
 from service.app.ingest import FrameFields
 from service.app.pairs import RevisitPairs
-from service.app.revisit_pairs import pair_frames
+from service.app.revisit_pairs import pair_frames, pair_sources
 from service.domain.pairs import PairFilter
 from service.evaluation.adaptation_pass import partner_of
 from service.evaluation.datasets import Dataset
@@ -53,9 +59,11 @@ from service.storage.db import transaction
 
 PROTOCOL = "pairs-observe"
 REVISIT_ROBOT = "revisits"
-# where the pairs come from: what observe verified, or each shot labelled with its partner
-# reference (the revisit protocol's ground-truth pairs, as an operator labels them)
-SOURCES = ("observe", "labelled")
+# where the pairs come from: what observe verified (K frames per submap), each shot labelled
+# with its partner reference (the revisit protocol's ground-truth pairs, as an operator labels
+# them), or what observe kept while the robot drove the first P % of the queries in order
+SOURCES = ("observe", "labelled", "stream")
+STREAM_SUBMAP = "revisit-stream"
 
 
 @dataclass
@@ -63,8 +71,9 @@ class ObservedPairs:
     """One K: what ``observe`` recorded, what the job made of it, the answers before and after.
 
     Attributes:
+        shots: K frames per revisited submap; for ``stream``, the percent of the queries driven.
         source: where the pairs came from (:data:`SOURCES`).
-        observed: query indices observed or labelled (K per revisited submap).
+        observed: query indices observed or labelled (K per revisited submap, or the drive's).
         test: the other query indices, the test queries.
         statuses: the observations' answers by status (``loop``, ``new_place``, ...).
         pairs: ``P x 2`` (query index, reference index) of the pairs observe recorded.
@@ -72,6 +81,8 @@ class ObservedPairs:
         job: the adapt job's status, message, version, whether it was activated, its metrics.
         before: the test queries as served on the starting atlas.
         after: the test queries with the job's version; None when the job made none.
+        sources: the recorded pairs by source (``observe``: verified, ``sequence``: a loop
+            the robot's sequence decided, ``operator``: labelled).
     """
 
     shots: int
@@ -84,6 +95,7 @@ class ObservedPairs:
     job: dict[str, Any]
     before: ServedAnswers
     after: ServedAnswers | None = None
+    sources: dict[str, int] = field(default_factory=dict)
 
     @property
     def activated(self) -> bool:
@@ -111,7 +123,8 @@ def observed_pairs_runs(
 ) -> list[ObservedPairs]:
     """One run of the protocol per K, each from the atlas as it was (``before``: the pass's
     served answers to every query on it). ``source`` "labelled": the shots are stored and
-    each is labelled as a pair with its partner reference instead of being observed."""
+    each is labelled as a pair with its partner reference instead of being observed;
+    "stream": each K is a percent of the queries, driven in order (:func:`_stream`)."""
     if source not in SOURCES:
         raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
     extractor = service.pipeline.preset.local.name
@@ -120,13 +133,20 @@ def observed_pairs_runs(
     reference_frame = {ref: frame for frame, ref in frame_to_reference.items()}
     runs = []
     for k_shots in shots:
-        observed = revisit_shots(revisited, k_shots)
+        if source == "stream":
+            observed = _stream(len(queries), k_shots)
+        else:
+            observed = revisit_shots(revisited, k_shots)
         test = np.setdiff1d(np.arange(len(queries)), observed)
         with service.sessions() as session:
             found = repo.get_atlas(session, name=atlas)
             atlas_id, starting = found.id, repo.active_model_version(session, atlas_id=found.id)
             starting_version = starting.version
-        submaps = sorted({f"revisit-{int(revisited[q]):05d}" for q in observed})
+        submap_name = {
+            int(q): STREAM_SUBMAP if source == "stream" else f"revisit-{int(revisited[q]):05d}"
+            for q in observed
+        }
+        submaps = sorted(set(submap_name.values()))
         for submap in submaps:
             service.create_submap(atlas, submap)
         query_of: dict[int, int] = {}
@@ -135,9 +155,7 @@ def observed_pairs_runs(
         try:
             with served_settings(service, extractor):
                 for q in observed:
-                    fields = FrameFields(
-                        f"revisit-{int(revisited[q]):05d}", REVISIT_ROBOT, timestamp=float(q)
-                    )
+                    fields = FrameFields(submap_name[int(q)], REVISIT_ROBOT, timestamp=float(q))
                     features = replace(queries[q], local=as_stored(queries[q].local))
                     if source == "labelled":
                         frame = service.ingest_features(
@@ -158,9 +176,9 @@ def observed_pairs_runs(
                         statuses[answer.status] += 1
                     query_of[frame.id] = int(q)
             with service.sessions() as session:
-                recorded = pair_frames(
-                    session, atlas_id=atlas_id, where=PairFilter(robots=(REVISIT_ROBOT,))
-                )
+                where = PairFilter(robots=(REVISIT_ROBOT,))
+                recorded = pair_frames(session, atlas_id=atlas_id, where=where)
+                sources = pair_sources(session, atlas_id=atlas_id, where=where)
             pairs = np.array(
                 [(query_of[a], frame_to_reference.get(b, -1)) for a, b in recorded], np.int64
             ).reshape(-1, 2)
@@ -194,9 +212,18 @@ def observed_pairs_runs(
                 job,
                 before.subset(test),
                 after,
+                sources,
             )
         )
     return runs
+
+
+def _stream(queries: int, percent: int) -> np.ndarray:
+    """The first ``percent`` % of the queries (at least one, never all: some must be left to
+    test on)."""
+    if not 0 < percent < 100:
+        raise ValueError(f"a stream drives between 1 and 99 % of the queries, got {percent}")
+    return np.arange(min(max(1, queries * percent // 100), queries - 1))
 
 
 def _delete(service: AtlasService, atlas: str, submaps: list[str]) -> None:
@@ -232,7 +259,11 @@ def observed_pairs_rows(
     subset = _subset(dataset, run.test)
     protocol = f"pairs-{run.source}"
     name = f"{protocol}-k{run.shots}"
-    origin = "observe verified" if run.source == "observe" else "labelled from ground truth"
+    origin = {
+        "observe": f"observe verified ({run.shots}/submap)",
+        "labelled": f"labelled from ground truth ({run.shots}/submap)",
+        "stream": f"observe kept on a drive over the first {run.shots} % of the queries",
+    }[run.source]
     methods = {
         "before": served_method(
             f"{name}-before",
@@ -245,7 +276,7 @@ def observed_pairs_rows(
     if run.after is not None:
         methods["after"] = served_method(
             f"{name}-after",
-            f"{label} adapted from {len(run.pairs)} pairs {origin} ({run.shots}/submap)",
+            f"{label} adapted from {len(run.pairs)} pairs {origin}",
             run.after,
             subset,
             submap_of,
@@ -258,6 +289,7 @@ def observed_pairs_rows(
         "statuses": run.statuses,
         "pairs": len(run.pairs),
         "pairs_right": int(run.right.sum()),
+        "pair_sources": run.sources,
         "test_queries": len(run.test),
         "job": run.job,
         "served": "adapted" if served is not methods["before"] else "starting",

@@ -134,7 +134,8 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(
             f"| {row['protocol'].removeprefix('pairs-')} | {row['shots']} "
             f"| {row['observed']} ({statuses}) "
-            f"| {row['pairs']} ({row['pairs_right']}) | {job['status']}: {job['message']} "
+            f"| {row['pairs']} ({row['pairs_right']}{_by_source(row)}) "
+            f"| {job['status']}: {job['message']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} "
             f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} |"
         )
@@ -149,9 +150,19 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "the decision's score part of wrong best answers (calibrated score - log10 of the "
         "atlas's frames, clipped to [-4, 8]), median. Pairs from `labelled`: the frames are "
         "stored instead and each labelled as a pair with its partner reference (the revisit "
-        "protocol as served).",
+        "protocol as served). Pairs from `stream`: K is a percent; the first K % of the "
+        "queries, in order, are observed as one robot's drive (its sequence on), every closure "
+        "observe kept (verified, or a loop of its sequence) is a pair, and the test queries are "
+        "the rest of the drive, places the job saw no pair of.",
     ]
     return "\n".join(lines)
+
+
+def _by_source(row: dict[str, Any]) -> str:
+    """ "; 40 sequence" where some of a row's pairs were not from verified closures."""
+    sources = row.get("pair_sources", {})
+    others = [f"{n} {source}" for source, n in sorted(sources.items()) if source != "observe"]
+    return "; " + ", ".join(others) if others else ""
 
 
 def stages_table(stages: dict[str, dict[str, dict[str, float]]]) -> str:

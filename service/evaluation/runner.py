@@ -334,7 +334,7 @@ def run_ablations(run: EvalRun) -> None:
             run.methods += rows
             run.observed_pairs.append(report_row)
         run.checkpoint("verification and baselines")
-    elif config.adapt_observe_shots or config.adapt_labelled_shots:
+    elif config.adapt_observe_shots or config.adapt_labelled_shots or config.adapt_stream_percents:
         run.skipped["pairs protocol"] = "needs the served pass (--served) and queries"
     if config.verify and run.first_keypoints is not None:
         _verification_step(run, run.first_keypoints)
@@ -378,7 +378,9 @@ def _retraining_step(run: EvalRun) -> None:
 
 def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None:
     """The pairs protocol on the first pass's atlas (:mod:`pairs_pass`), when asked for."""
-    if not config.adapt_observe_shots and not config.adapt_labelled_shots:
+    if not (
+        config.adapt_observe_shots or config.adapt_labelled_shots or config.adapt_stream_percents
+    ):
         return None
 
     def run(
@@ -392,6 +394,7 @@ def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None
             for source, shots in (
                 ("observe", config.adapt_observe_shots),
                 ("labelled", config.adapt_labelled_shots),
+                ("stream", config.adapt_stream_percents),
             )
             for run in observed_pairs_runs(
                 service,

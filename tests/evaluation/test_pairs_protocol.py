@@ -73,6 +73,7 @@ def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: i
 
         runs = protocol((3, 1), "observe")
         states["labelled"] = protocol((3,), "labelled")
+        states["stream"] = protocol((50,), "stream")
         states["after"] = _atlas_state(service)
         states["served"] = served
         return list(runs)
@@ -134,6 +135,40 @@ def test_labelled_shots_give_the_job_their_ground_truth_pairs(protocol_run) -> N
     methods, row = observed_pairs_rows(run, dataset, submap_of, "LoopNet DISK")
     assert row["protocol"] == "pairs-labelled" and "labelled from ground truth" in methods[1].label
     assert [m.name for m in methods] == ["pairs-labelled-k3-before", "pairs-labelled-k3-after"]
+
+
+@pytest.mark.slow
+def test_a_drive_gives_the_job_the_closures_observe_kept(protocol_run) -> None:  # type: ignore[no-untyped-def]
+    # the first half of the queries driven in order by one robot; the second half is the test
+    dataset, submap_of, _, states = protocol_run
+    (run,) = states["stream"]
+    queries = len(dataset.queries)
+    half = queries // 2
+    assert run.source == "stream" and run.shots == 50
+    assert run.observed.tolist() == list(range(half))
+    assert run.test.tolist() == list(range(half, queries))
+    assert sum(run.statuses.values()) == half
+    # every loop the drive answered is a pair (verified or its sequence's), and every
+    # verified closure: one pair an observation at most
+    assert run.statuses.get("loop", 0) <= len(run.pairs) <= half
+    assert sum(run.sources.values()) == len(run.pairs)
+    assert set(run.sources) <= {"observe", "sequence"}
+    assert set(run.pairs[:, 0]) <= set(run.observed)
+    methods, row = observed_pairs_rows(run, dataset, submap_of, "LoopNet DISK")
+    assert row["protocol"] == "pairs-stream" and row["pair_sources"] == run.sources
+    if run.after is not None:
+        assert "a drive over the first 50 % of the queries" in methods[1].label
+    assert states["after"] == states["before"]  # the drive's frames and pairs are gone
+
+
+def test_a_drive_needs_some_queries_left_to_test() -> None:
+    from service.evaluation.pairs_pass import _stream
+
+    assert _stream(40, 50).tolist() == list(range(20))
+    assert _stream(3, 1).tolist() == [0] and _stream(2, 99).tolist() == [0]
+    for percent in (0, 100):
+        with pytest.raises(ValueError, match="between 1 and 99"):
+            _stream(40, percent)
 
 
 @pytest.mark.slow

@@ -32,6 +32,11 @@ BLOCK_VALUES = 1 << 24  # similarities (and right-answer flags) held at once: he
 # so the gate's cost stays bounded on large atlases (a fifth of 1M frames would be 2e14 FLOP)
 JUDGED_FRAMES = 8192
 AP_FRAMES = 2048  # of those, the ones whose whole ranking is scored: a sort each
+# a submap of at most this many frames is one place (its frames are each other's right
+# answers); a longer one is a route (a robot's whole drive in one submap), where only a frame's
+# neighbours along it are its place: counting a drive's 1,772 winter frames as one place made
+# the gate reward a version for ranking "winter" first and refuse one that removed the season
+PLACE_SUBMAP_FRAMES = 25
 
 
 @dataclass(frozen=True)
@@ -92,14 +97,16 @@ def held_out_scores(
     same_place: np.ndarray | None = None,
 ) -> HeldOutScores:
     """Ranks every other frame of the atlas (by the heads' embedding) for each ``held_out``
-    frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap, or of its
-    robot at most ``window`` frames away: a place no training step saw must still find its own
-    neighbourhood, not a trained place. (Only stretch edges would have a right answer among the
+    frame (:data:`JUDGED_FRAMES` of them at most); right ones are in its submap when the
+    submap is a place (:data:`PLACE_SUBMAP_FRAMES`), or of its robot at most ``window`` frames
+    away: a place no training step saw must still find its own neighbourhood, not a trained
+    place. (Only stretch edges would have a right answer among the
     frames outside the stretches.) ``same_place``: ``P x 2`` rows known to show one place
     (revisit pairs): the neighbourhood of a pair's other frame is right too, so a frame of
     a second robot that finds the first robot's frames of its place is not counted wrong."""
     embeddings = embed_vectors(heads, data.local, data.global_)
     codes, rank, _ = data.sequence
+    places = place_submaps(data.submaps)
     held_out = _evenly(held_out, JUDGED_FRAMES)
     ranked = set(_evenly(held_out, AP_FRAMES).tolist())
     block = max(1, BLOCK_VALUES // len(embeddings))
@@ -109,12 +116,12 @@ def held_out_scores(
         rows = held_out[start : start + block]
         similarity = embeddings[rows] @ embeddings.T
         similarity[np.arange(len(rows)), rows] = -np.inf  # not itself
-        right = (data.submaps[None, :] == data.submaps[rows, None]) | (
+        right = (places[None, :] == places[rows, None]) | (
             (codes[None, :] == codes[rows, None])
             & (np.abs(rank[None, :] - rank[rows, None]) <= window)
         )
         if same_place is not None and len(same_place):
-            right |= _partners_neighbourhood(right, data, same_place, window)
+            right |= _partners_neighbourhood(right, data, places, same_place, window)
         right[np.arange(len(rows)), rows] = False
         hits += int(np.sum(right[np.arange(len(rows)), similarity.argmax(axis=1)]))
         precisions += [
@@ -125,11 +132,24 @@ def held_out_scores(
     return HeldOutScores(hits / len(held_out), float(np.mean(precisions)))
 
 
+def place_submaps(submaps: np.ndarray) -> np.ndarray:
+    """Per frame, a code shared by the frames of its submap when the submap is a place (at most
+    :data:`PLACE_SUBMAP_FRAMES` frames), else -1 - its own index (no other frame shares it)."""
+    _, inverse, counts = np.unique(submaps, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    alone = -1 - np.arange(len(inverse))
+    return np.where(counts[inverse] <= PLACE_SUBMAP_FRAMES, inverse, alone)
+
+
 def _partners_neighbourhood(
-    right: np.ndarray, data: TrainingData, same_place: np.ndarray, window: int
+    right: np.ndarray,
+    data: TrainingData,
+    places: np.ndarray,
+    same_place: np.ndarray,
+    window: int,
 ) -> np.ndarray:
     """Per row of ``right`` (its frame's neighbourhood), the neighbourhoods of the other frames
-    of the ``same_place`` pairs that touch it."""
+    of the ``same_place`` pairs that touch it (``places``: :func:`place_submaps`)."""
     codes, rank, _ = data.sequence
     both = np.concatenate([same_place, same_place[:, ::-1]])
     extra = np.zeros_like(right)
@@ -137,7 +157,7 @@ def _partners_neighbourhood(
         partners = both[right[i, both[:, 0]], 1]
         if len(partners):
             extra[i] = np.any(
-                (data.submaps[None, :] == data.submaps[partners, None])
+                (places[None, :] == places[partners, None])
                 | (
                     (codes[None, :] == codes[partners, None])
                     & (np.abs(rank[None, :] - rank[partners, None]) <= window)
@@ -164,8 +184,8 @@ def compare_on_held_out(
     return {
         "frames": int(len(held_out)),
         "judged_frames": min(len(held_out), JUDGED_FRAMES),
-        "judged_on": "held-out stretches: the other frames of their submap or within "
-        f"{window} frames"
+        "judged_on": "held-out stretches: the other frames of their submap (one of at most "
+        f"{PLACE_SUBMAP_FRAMES} frames) or within {window} frames"
         + (", or of their revisit pairs' places" if same_place is not None else "")
         + ", nearest (accuracy) and all ranked (mean average precision)",
         "active": round(before.accuracy, 4),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -63,6 +65,38 @@ def test_the_gate_refuses_heads_that_forget_the_places_they_did_not_train_on() -
         "is active (held-out stretches (20 frames) retrieval accuracy 1.000 -> 1.000, "
         f"mean average precision {same['map_active']:.3f} -> {same['map_new']:.3f})"
     )
+
+
+def forgetful_heads(data: TrainingData, config: HeadsConfig) -> LoopNetHeads:
+    """Heads that keep the trained places' axes only: held-out frames become noise."""
+    forgetful = LoopNetHeads(config).eval()
+    with torch.no_grad():
+        keep = np.zeros(128, np.float32)
+        trained = np.flatnonzero(~np.isin(np.arange(FRAMES), HELD))
+        keep[np.abs(np.hstack([data.local, data.global_])[trained]).argmax(axis=1)] = 1.0
+        forgetful.fusion.project_local.weight.mul_(torch.from_numpy(keep[:, None]))
+        forgetful.fusion.project_global.weight.mul_(torch.from_numpy(keep[:, None]))
+    return forgetful
+
+
+def test_a_submap_that_holds_a_whole_drive_is_a_route_not_one_place(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the same route stored as one robot's single submap: were its 100 frames one place, every
+    # held-out frame's nearest frame would be right whatever the heads did to it
+    data = replace(route(), submaps=np.zeros(FRAMES, np.int64))
+    split = split_for_job(replace(data, submaps=route().submaps), 3)
+    config = HeadsConfig(local_dim=64, global_dim=64, alpha=0.5)
+    active, forgetful = LoopNetHeads(config).eval(), forgetful_heads(data, config)
+    gate = compare_on_held_out(active, forgetful, data, split.held_out, 2)
+    assert gate["new"] < 0.5 < gate["active"] and gate["not_worse"] is False
+    sizes = np.array([7] * 30 + [3] * 5 + [9] * 26)  # a route, a place, a route
+    codes = held_out.place_submaps(sizes)
+    assert len(set(codes[:30])) == 30 and len(set(codes[35:])) == 26
+    assert len(set(codes[30:35])) == 1 and not np.isin(codes[30:35], codes[:30]).any()
+    monkeypatch.setattr(held_out, "PLACE_SUBMAP_FRAMES", FRAMES)  # the drive as one place
+    blind = compare_on_held_out(active, forgetful, data, split.held_out, 2)
+    assert blind["active"] == blind["new"] == 1.0 and blind["not_worse"] is True
 
 
 def test_average_precision_of_one_ranking_by_hand() -> None:

@@ -22,7 +22,10 @@ With the source ``stream`` the robot drives: the first P % of the queries, in th
 traversal's route order), are observed one second apart in one submap, so its sequence and
 trajectory contrast work as they do for a fleet's robot, and every closure observe keeps
 (verified, or a loop of its sequence) is a pair. The test queries are the rest of the drive:
-places the job never saw a pair of, so what it learned must be the change of condition.
+places the job never saw a pair of, so what it learned must be the change of condition. They
+are answered twice more, as the rest of a drive (observed in order by a robot with the
+service's default sequence), once by the starting version and once by the job's: what the
+adaptation does to the loops a robot closes.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from service.app.catalog import AtlasService
 from service.app.ingest import FrameFields
 from service.app.pairs import RevisitPairs
 from service.app.revisit_pairs import pair_frames, pair_sources
+from service.config import Settings
 from service.domain.pairs import PairFilter
 from service.evaluation.adaptation_pass import partner_of
 from service.evaluation.datasets import Dataset
@@ -45,6 +49,7 @@ from service.evaluation.protocol import MethodResult
 from service.evaluation.retraining_pass import _subset, query_submaps, revisit_shots
 from service.evaluation.served_pass import (
     PARTS,
+    QUERY_SUBMAP,
     ServedAnswers,
     as_stored,
     run_job_now,
@@ -83,6 +88,8 @@ class ObservedPairs:
         after: the test queries with the job's version; None when the job made none.
         sources: the recorded pairs by source (``observe``: verified, ``sequence``: a loop
             the robot's sequence decided, ``operator``: labelled).
+        drive_before, drive_after: ``stream`` only, the test queries observed in order as a
+            drive (default sequence), by the starting and by the job's version.
     """
 
     shots: int
@@ -96,6 +103,8 @@ class ObservedPairs:
     before: ServedAnswers
     after: ServedAnswers | None = None
     sources: dict[str, int] = field(default_factory=dict)
+    drive_before: ServedAnswers | None = None
+    drive_after: ServedAnswers | None = None
 
     @property
     def activated(self) -> bool:
@@ -188,14 +197,19 @@ def observed_pairs_runs(
             # frames go once the job has learned from them (an asking robot would also bring
             # its own trajectory into the decision)
             _delete(service, atlas, submaps)
-            after = None
-            if job["version"] is not None:
-                if not job["activated"]:  # measured with the job's version all the same
-                    service.activate_version(atlas, job["version"])
+            tested = [queries[q] for q in test]
+            after = drive_before = drive_after = None
+            if source == "stream":  # the rest of the drive, with the starting version
+                service.activate_version(atlas, starting_version)
                 service.catch_up()
-                after = served_answers(
-                    service, [queries[q] for q in test], frame_to_reference, k, atlas, extractor
-                )
+                drive_before = _drive(service, tested, frame_to_reference, k, atlas, extractor)
+            if job["version"] is not None:
+                # measured with the job's version also when the gate kept it back
+                service.activate_version(atlas, job["version"])
+                service.catch_up()
+                after = served_answers(service, tested, frame_to_reference, k, atlas, extractor)
+                if source == "stream":
+                    drive_after = _drive(service, tested, frame_to_reference, k, atlas, extractor)
         finally:  # the atlas as it was: the starting version, no observed frame or pair
             service.activate_version(atlas, starting_version)
             _delete(service, atlas, submaps)
@@ -213,9 +227,30 @@ def observed_pairs_runs(
                 before.subset(test),
                 after,
                 sources,
+                drive_before,
+                drive_after,
             )
         )
     return runs
+
+
+def _drive(
+    service: AtlasService,
+    queries: list[FrameFeatures],
+    frame_to_reference: dict[int, int],
+    k: int,
+    atlas: str,
+    extractor: str,
+) -> ServedAnswers:
+    """``queries`` observed in order by a robot with the service's default sequence length,
+    over the map's frames; its frames (and the pairs they made) are deleted again."""
+    length = Settings(data_dir=service.settings.data_dir).sequence_length
+    try:
+        return served_answers(
+            service, queries, frame_to_reference, k, atlas, extractor, sequence_length=length
+        )
+    finally:
+        _delete(service, atlas, [QUERY_SUBMAP])
 
 
 def _stream(queries: int, percent: int) -> np.ndarray:
@@ -281,6 +316,17 @@ def observed_pairs_rows(
             subset,
             submap_of,
         )
+    for side, drive in (("before", run.drive_before), ("after", run.drive_after)):
+        if drive is not None:
+            version = "the starting version" if side == "before" else "the job's version"
+            methods[f"drive-{side}"] = served_method(
+                f"{name}-drive-{side}",
+                f"{label} (as served, observe, L={drive.sequence_length}), the rest of the "
+                f"drive with {version}",
+                drive,
+                subset,
+                submap_of,
+            )
     served = methods["after"] if run.activated and "after" in methods else methods["before"]
     row = {
         "protocol": protocol,
@@ -297,6 +343,11 @@ def observed_pairs_rows(
             f"{key}_{side}": value
             for side, method in (*methods.items(), ("served", served))
             for key, value in _figures(method).items()
+        },
+        **{
+            f"loops_{side}": methods[side].details["operating_point"]
+            for side in ("drive-before", "drive-after")
+            if side in methods
         },
     }
     return list(methods.values()), row

@@ -154,10 +154,18 @@ def test_a_drive_gives_the_job_the_closures_observe_kept(protocol_run) -> None: 
     assert sum(run.sources.values()) == len(run.pairs)
     assert set(run.sources) <= {"observe", "sequence"}
     assert set(run.pairs[:, 0]) <= set(run.observed)
+    # the rest of the drive observed by a robot, with the starting version and the job's
+    assert run.drive_before is not None and len(run.drive_before.status) == len(run.test)
+    assert run.drive_before.sequence_length == 10  # the service's default
     methods, row = observed_pairs_rows(run, dataset, submap_of, "LoopNet DISK")
     assert row["protocol"] == "pairs-stream" and row["pair_sources"] == run.sources
+    assert row["loops_drive-before"]["loops"] == run.drive_before.status.count("loop")
+    names = [m.name for m in methods]
+    assert names[0] == "pairs-stream-k50-before" and "pairs-stream-k50-drive-before" in names
     if run.after is not None:
+        assert run.drive_after is not None and len(run.drive_after.status) == len(run.test)
         assert "a drive over the first 50 % of the queries" in methods[1].label
+        assert names[-1] == "pairs-stream-k50-drive-after"
     assert states["after"] == states["before"]  # the drive's frames and pairs are gone
 
 

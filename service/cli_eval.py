@@ -197,6 +197,14 @@ def add_online_parser(commands: argparse._SubParsersAction) -> None:  # type: ig
         "'' for none",
     )
     on.add_argument(
+        "--served-adapt-after",
+        default="",
+        metavar="N[,N...]",
+        help="each served row again with automatic adaptation after every N revisit pairs the "
+        "replay's observations kept (LOOPNET_ADAPT_AFTER_PAIRS; the jobs run between frames); "
+        "'' for none",
+    )
+    on.add_argument(
         "--limit", type=int, help="DATASET: only the first N map frames and their revisits"
     )
     on.set_defaults(func=cmd_eval_online)
@@ -238,6 +246,7 @@ def cmd_eval_online(args: argparse.Namespace) -> int:
         exclude_recent=args.exclude_recent,
         consistency=args.consistency,
         served_lengths=_csv_list(int, args.served),
+        served_adapt_after=_csv_list(int, args.served_adapt_after),
         command=command_line(sys.argv[1:] if args.argv is None else args.argv),
     )
     run_online(config)

@@ -259,7 +259,8 @@ class JobSettings(BaseSettings):
         0,
         ge=0,
         description="Queue an adaptation job (kind adapt: learned whitening from revisit pairs) "
-        "once an atlas has collected this many verified revisit pairs since its last one "
+        "once an atlas has collected this many revisit pairs (verified closures and sequence "
+        "loops observe kept, and labelled pairs) since its last one "
         "(0: never, the default; operators submit adapt jobs themselves).",
     )
     pairs_from_sequence_loops: bool = Field(

@@ -8,10 +8,11 @@ running at that moment, the first frame stored after it finishes creates it.
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.config import Settings
+from service.jobs.adaptation_config import AdaptConfig
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.models import Job, RevisitPair
@@ -41,9 +42,16 @@ def calibration_due(session: Session, settings: Settings, atlas_id: int) -> Job 
 
 def adaptation_due(session: Session, settings: Settings, atlas_id: int) -> Job | None:
     """Create an adaptation job once the atlas has ``adapt_after_pairs`` revisit pairs newer
-    than the ones its last adaptation job was queued with (off at 0, the default)."""
+    than the ones its last adaptation job was queued with (off at 0, the default), and at
+    least the pairs a job needs (:class:`AdaptConfig`'s ``min_pairs``: a job queued with fewer
+    would only be refused)."""
     every = settings.adapt_after_pairs
     if every <= 0:
+        return None
+    total = session.scalar(
+        select(func.count(RevisitPair.id)).where(RevisitPair.atlas_id == atlas_id)
+    )
+    if int(total or 0) < AdaptConfig().min_pairs:
         return None
     last = session.scalars(
         select(Job)

@@ -205,6 +205,8 @@ class OnlineConfig:
         served_lengths: sequence lengths L of the ``loopnet-<extractor>-served`` rows (one per
             extractor and L: the service's defaults, calibration at the milestones during the
             replay; :mod:`service.evaluation.online_served`).
+        served_adapt_after: for each N, the same served rows again with automatic adaptation
+            after every N revisit pairs (``loopnet-<extractor>-served-adaptN``).
     """
 
     trajectory: Trajectory
@@ -218,6 +220,7 @@ class OnlineConfig:
     consistency: int = 3
     command: str = ""
     served_lengths: tuple[int, ...] = (10,)
+    served_adapt_after: tuple[int, ...] = ()
 
 
 def run_online(config: OnlineConfig) -> dict[str, Any]:
@@ -262,6 +265,8 @@ def run_online(config: OnlineConfig) -> dict[str, Any]:
             )
         for length in config.served_lengths:
             rows.append(_served_row(config, extractor, pipeline, length))
+            for pairs in config.served_adapt_after:
+                rows.append(_served_row(config, extractor, pipeline, length, pairs))
     report = {
         "command": config.command,
         "trajectory": config.trajectory.name,
@@ -283,7 +288,11 @@ def _settings(config: OnlineConfig, length: int) -> OnlineSettings:
 
 
 def _served_row(
-    config: OnlineConfig, extractor: str, pipeline: FeaturePipeline, length: int
+    config: OnlineConfig,
+    extractor: str,
+    pipeline: FeaturePipeline,
+    length: int,
+    adapt_after_pairs: int = 0,
 ) -> dict[str, Any]:
     """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept over the loop
     probability by :func:`replay` (k=1, and with the protocol's consistency; ``sweeps`` adds
@@ -299,9 +308,11 @@ def _served_row(
         length=length,
         exclude_recent=config.exclude_recent,
         consistency=config.consistency,
+        adapt_after_pairs=adapt_after_pairs,
     )
     vectors = unit_embeddings(features, pipeline.preset.alpha)
-    row: dict[str, Any] = {"method": f"loopnet-{extractor}-served"}
+    adapting = f"-adapt{adapt_after_pairs}" if adapt_after_pairs else ""
+    row: dict[str, Any] = {"method": f"loopnet-{extractor}-served{adapting}"}
     for score in SWEEPS:
         observations = [Observation(*a) for a in served_observations(served, score)]
         swept = replay(trajectory, vectors, _settings(config, length), observations)

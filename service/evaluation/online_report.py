@@ -66,8 +66,10 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
         "Jobs run during the served replays",
         "method | L | job | milestone | after frame | status | version | frames fitted "
         "| min inliers | seconds",
-        "A frame whose insert reached a calibration milestone queued the job; it ran before the "
-        "next frame, which the new model version answered.",
+        "A frame whose insert reached a calibration milestone (a calibrate job) or whose "
+        "observation brought the atlas's new revisit pairs to the setting's number (an adapt "
+        "job, rows `-adaptN`) queued the job; it ran before the next frame, which the new model "
+        "version answered.",
     )
     for row in rows:
         for job in row["jobs"]:

@@ -1,7 +1,8 @@
 """The online replay as served: one robot's frames through ``POST /observe``'s use case with
 every setting at the service's defaults (verification with the default matcher of the
 cached keypoints, the loop decision's ``loop_probability``, sequences and consistency), and
-the calibration the service runs at its milestones run during the replay.
+the calibration the service runs at its milestones run during the replay (and, when asked,
+the adaptation it queues after every N revisit pairs its observations kept).
 
 A frame whose insert makes the atlas reach a milestone queues a calibration job
 (:mod:`service.app.milestones`), as in the service; here the job runs at once in this process
@@ -94,9 +95,11 @@ def served_replay(
     length: int,
     exclude_recent: int,
     consistency: int,
+    adapt_after_pairs: int = 0,
 ) -> ServedReplay:
     """Observe every frame as the service at its defaults answers it (fusion at the preset's
-    alpha), running each job a frame queues before the next frame."""
+    alpha), running each job a frame queues before the next frame; ``adapt_after_pairs``
+    turns automatic adaptation on (0: off, the service's default)."""
     count = len(features.local)
     times = frame_times(trajectory, count)
     dim = pipeline.local.descriptor_dim
@@ -109,6 +112,7 @@ def served_replay(
         exclude_recent=exclude_recent,
         consistency=consistency,
         served=True,
+        adapt_after_pairs=adapt_after_pairs,
     ) as service:
         queued: list[int] = []
         service.frames.enqueue = queued.append  # a worker that runs each job at once

@@ -45,18 +45,25 @@ def frame_times(trajectory: Trajectory, count: int) -> np.ndarray:
 
 
 def replay_settings(
-    data_dir: Path, *, exclude_recent: int, consistency: int, served: bool
+    data_dir: Path,
+    *,
+    exclude_recent: int,
+    consistency: int,
+    served: bool,
+    adapt_after_pairs: int = 0,
 ) -> Settings:
     """The replay atlas's settings: the protocol's exclusion (the robot's last frames, not
     seconds) and consistency. ``served``: everything else at the service's defaults
     (verification, the loop decision, calibration milestones); otherwise retrieval only (no
-    verification, no automatic calibration)."""
+    verification, no automatic calibration). ``adapt_after_pairs``: automatic adaptation
+    (``LOOPNET_ADAPT_AFTER_PAIRS``; 0, the default, off)."""
     retrieval_only = {} if served else {"verify_top": 0, "calibration_milestones": ""}
     return Settings(
         data_dir=data_dir,
         exclude_recent_frames=exclude_recent,
         exclude_recent_seconds=0.0,
         consistency_frames=consistency,
+        adapt_after_pairs=adapt_after_pairs,
         torch_threads=torch.get_num_threads(),  # the caller's own, kept
         **retrieval_only,  # type: ignore[arg-type]
     )
@@ -71,6 +78,7 @@ def replay_atlas(
     exclude_recent: int,
     consistency: int,
     served: bool,
+    adapt_after_pairs: int = 0,
 ) -> Iterator[AtlasService]:
     """A started service on a temporary SQLite atlas (``ATLAS``, one submap) whose untrained
     heads fuse at ``alpha``; stopped and deleted on exit."""
@@ -81,7 +89,11 @@ def replay_atlas(
     pipeline.preset = replace(pipeline.preset, alpha=alpha)
     with tempfile.TemporaryDirectory(prefix="loopnet-online-") as data_dir:
         settings = replay_settings(
-            Path(data_dir), exclude_recent=exclude_recent, consistency=consistency, served=served
+            Path(data_dir),
+            exclude_recent=exclude_recent,
+            consistency=consistency,
+            served=served,
+            adapt_after_pairs=adapt_after_pairs,
         )
         runtime = Runtime(settings, pipeline)
         runtime.start(background=False)

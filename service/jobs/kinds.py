@@ -96,8 +96,9 @@ def _adaptation_ready(session: Session, atlas_id: int, atlas: str, config: Any) 
     if found < config.min_pairs:
         raise InvalidInput(
             f"refused: atlas '{atlas}' has {found} revisit pair(s) matching the job's "
-            f"choice; adaptation needs at least {config.min_pairs} (verified closures "
-            "recorded by observe, or pairs labelled with POST /atlases/{atlas}/pairs)"
+            f"choice; adaptation needs at least {config.min_pairs} (closures observe kept: "
+            "verified or its sequence's loops; or pairs labelled with POST "
+            "/atlases/{atlas}/pairs)"
         )
 
 

@@ -178,7 +178,8 @@ def adapt_heads(
     if len(pairs) < min_pairs:
         raise NoUsefulPairs(
             f"only {len(pairs)} usable revisit pair(s) match the job's choice; adaptation needs "
-            f"at least {min_pairs} (verified closures recorded by observe, or labelled pairs)"
+            f"at least {min_pairs} (closures observe kept: verified or its sequence's loops; "
+            "or labelled pairs)"
         )
     if held_out_pairs is None:
         train_idx, held_idx = split_pairs(len(pairs))

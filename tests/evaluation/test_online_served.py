@@ -119,6 +119,8 @@ def test_eval_online_command_slices_and_reports_the_served_row(tmp_path, capsys)
         "20",
         "--exclude-recent",
         "5",
+        "--served-adapt-after",
+        "2",
         "--cache-dir",
         str(tmp_path / "cache"),
         "--out",
@@ -126,10 +128,19 @@ def test_eval_online_command_slices_and_reports_the_served_row(tmp_path, capsys)
     ]
     assert main(argv) == 0
     report = json.loads((out / "online.json").read_text())
-    [served] = report["rows"]
+    served, adapting = report["rows"]
     assert served["method"] == "loopnet-xfeat-served" and served["frames"] == 41
     assert [(j["milestone"], j["frame"], j["status"]) for j in served["jobs"]] == [
         (16, 15, "succeeded"),
         (32, 31, "succeeded"),
     ]
     assert "| loopnet-xfeat-served | 5 | 0.98 |" in capsys.readouterr().out
+    # the same replay with automatic adaptation after every 2 pairs: the milestones' jobs as
+    # before, and no adapt job before the atlas holds the 10 pairs a job needs
+    assert adapting["method"] == "loopnet-xfeat-served-adapt2"
+    jobs = [(j["kind"], j["milestone"], j["frame"]) for j in adapting["jobs"]]
+    assert [j for j in jobs if j[0] == "calibrate"] == [
+        ("calibrate", 16, 15),
+        ("calibrate", 32, 31),
+    ]
+    assert all(j["status"] == "succeeded" for j in adapting["jobs"])

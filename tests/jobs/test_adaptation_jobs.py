@@ -125,7 +125,7 @@ def test_a_job_without_useful_pairs_is_refused_with_its_reason(app_client: TestC
     assert job["status"] == "failed"
     assert job["message"] == (
         "refused: only 0 usable revisit pair(s) match the job's choice; adaptation needs at "
-        "least 10 (verified closures recorded by observe, or labelled pairs)"
+        "least 10 (closures observe kept: verified or its sequence's loops; or labelled pairs)"
     )
     assert [v["version"] for v in client.get("/v1/atlases/campus/models").json()] == [1]
     unknown = client.post(
@@ -197,8 +197,9 @@ def test_operator_labelled_pairs_scoped_by_atlas_and_role(app_client: TestClient
 
 
 def test_automatic_adaptation_after_n_new_pairs(tmp_path: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
-    """With ``adapt_after_pairs`` 2, the second verified pair queues an adapt job; the third
-    none (a job is queued), but it counts towards the next, which the fourth queues."""
+    """With ``adapt_after_pairs`` 2, no job is queued before the atlas has the 10 pairs a job
+    needs; the tenth queues one; the eleventh none (a job is queued), but it counts towards the
+    next, which the twelfth queues."""
     settings = make_settings(
         tmp_path / "data", calibration_milestones="", adapt_after_pairs=2, sync_seconds=0.2
     )
@@ -232,14 +233,17 @@ def test_automatic_adaptation_after_n_new_pairs(tmp_path: Path, pipeline) -> Non
         def adapt_jobs() -> list[dict]:
             return [j for j in client.get("/v1/atlases/campus/jobs").json() if j["kind"] == "adapt"]
 
-        verified(ids[1], ids[0])
-        assert adapt_jobs() == []
-        verified(ids[2], ids[0])
+        ordered = [(a, b) for a in range(4) for b in range(4) if a != b]  # 12 distinct pairs
+        for a, b in ordered[:9]:
+            verified(ids[a], ids[b])
+        assert adapt_jobs() == []  # 9 pairs: fewer than a job needs
+        verified(*(ids[i] for i in ordered[9]))
         (job,) = adapt_jobs()
         assert job["status"] == "queued" and job["params"]["automatic"] is True
-        verified(ids[3], ids[0])  # a job is queued: none more
+        assert job["params"]["through_pair"] == 10
+        verified(*(ids[i] for i in ordered[10]))  # a job is queued: none more
         assert len(adapt_jobs()) == 1
         client.post(f"/v1/atlases/campus/jobs/{job['id']}/cancel")
-        verified(ids[3], ids[1])  # two pairs past the first job's
+        verified(*(ids[i] for i in ordered[11]))  # two pairs past the first job's
         latest = adapt_jobs()[0]
-        assert len(adapt_jobs()) == 2 and latest["params"]["through_pair"] == 4
+        assert len(adapt_jobs()) == 2 and latest["params"]["through_pair"] == 12

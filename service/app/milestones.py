@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.config import Settings
-from service.jobs.adaptation_config import AdaptConfig
+from service.domain.pairs import MIN_ADAPTATION_PAIRS
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.models import Job, RevisitPair
@@ -43,15 +43,15 @@ def calibration_due(session: Session, settings: Settings, atlas_id: int) -> Job 
 def adaptation_due(session: Session, settings: Settings, atlas_id: int) -> Job | None:
     """Create an adaptation job once the atlas has ``adapt_after_pairs`` revisit pairs newer
     than the ones its last adaptation job was queued with (off at 0, the default), and at
-    least the pairs a job needs (:class:`AdaptConfig`'s ``min_pairs``: a job queued with fewer
-    would only be refused)."""
+    least the pairs a job needs (``MIN_ADAPTATION_PAIRS``, a job's default ``min_pairs``: a job
+    queued with fewer would only be refused)."""
     every = settings.adapt_after_pairs
     if every <= 0:
         return None
     total = session.scalar(
         select(func.count(RevisitPair.id)).where(RevisitPair.atlas_id == atlas_id)
     )
-    if int(total or 0) < AdaptConfig().min_pairs:
+    if int(total or 0) < MIN_ADAPTATION_PAIRS:
         return None
     last = session.scalars(
         select(Job)

@@ -5,6 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 
+MIN_ADAPTATION_PAIRS = 10
+"""Fewest usable pairs an adaptation job takes by default: the job's parameter and the
+automatic trigger (which must not queue a job that could only be refused) share it."""
+
 
 @dataclass(frozen=True)
 class PairFilter:

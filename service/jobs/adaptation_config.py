@@ -9,7 +9,7 @@ from typing import Literal
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
-from service.domain.pairs import PairFilter
+from service.domain.pairs import MIN_ADAPTATION_PAIRS, PairFilter
 
 AdaptMethod = Literal["whitening", "whitening+pairs", "pairs"]
 ADAPT_METHODS: tuple[AdaptMethod, ...] = ("whitening", "whitening+pairs", "pairs")
@@ -51,7 +51,10 @@ class AdaptConfig:
         default=None, ge=2, le=4096, description="Axes kept; unset: all of the fused input."
     )
     min_pairs: int = Field(
-        default=10, ge=2, le=100_000, description="Fewer usable pairs: the job is refused."
+        default=MIN_ADAPTATION_PAIRS,
+        ge=2,
+        le=100_000,
+        description="Fewer usable pairs: the job is refused.",
     )
     window: int = Field(
         default=2, ge=0, le=1000, description="Frames of one robot this close are one place."

@@ -114,11 +114,24 @@ def verdict(gate: dict[str, Any], activated: bool) -> str:
     if activated:
         return f"is active ({found})" if gate["not_worse"] else f"is active, forced ({found})"
     why = (
-        "worse on held-out pairs"
+        f"worse on held-out pairs{_what_fell(gate)}"
         if not gate["pairs_not_worse"]
         else "worse on the atlas's held-out stretches"
     )
     return f"was not activated: {why} ({found})"
+
+
+def _what_fell(gate: dict[str, Any]) -> str:
+    """Which of the held-out pairs' scores fell besides the one :func:`verdict` quotes."""
+    fell = [
+        f"{label} {gate[name + '_active']:.3f} -> {gate[name + '_new']:.3f}"
+        for name, label in (
+            ("mrr", "mean reciprocal rank"),
+            ("separated", "found above every wrong first answer"),
+        )
+        if gate.get(name + "_new") is not None and gate[name + "_new"] < gate[name + "_active"]
+    ]
+    return f": {'; '.join(fell)}" if fell else ""
 
 
 __all__ = ["AdaptConfig", "NoUsefulPairs", "run_adaptation", "verdict"]

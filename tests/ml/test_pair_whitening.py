@@ -8,7 +8,15 @@ import pytest
 import torch
 from sklearn.covariance import ledoit_wolf_shrinkage as sklearn_shrinkage
 
-from service.ml.adaptation import NoUsefulPairs, adapt_heads, pair_scores, split_pairs
+from service.jobs.adaptation import verdict
+from service.ml.adaptation import (
+    NoUsefulPairs,
+    PairScores,
+    adapt_heads,
+    pair_scores,
+    separated_share,
+    split_pairs,
+)
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.pair_whitening import (
     PairWhitening,
@@ -118,5 +126,56 @@ def test_pair_scores_count_the_partner_first() -> None:
     data, pairs = _two_conditions()
     places = np.concatenate([data.local[:60], data.local[:60]])
     unit = places / np.linalg.norm(places, axis=1, keepdims=True)
-    recall, mrr = pair_scores(unit, data, pairs, window=0)
-    assert recall == 1.0 and mrr == 1.0
+    assert pair_scores(unit, data, pairs, window=0) == (1.0, 1.0, 1.0)
+
+
+def test_separated_share_is_recall_at_full_precision() -> None:
+    """First answers' similarities 0.9 (right), 0.8 (wrong), 0.7 and 0.6 (right): only the
+    answer above the wrong one's 0.8 could be accepted without a false loop."""
+    best = np.array([0.9, 0.8, 0.7, 0.6])
+    assert separated_share(best, np.array([True, False, True, True])) == 0.25
+    assert separated_share(best, np.ones(4, bool)) == 1.0
+    assert separated_share(best, np.zeros(4, bool)) == 0.0
+
+
+def test_a_ranking_that_keeps_its_first_answers_can_lose_the_decision() -> None:
+    """Robot a's frames e0..e3, robot b's revisits of them; b's last frame answers a0 first
+    (wrong) both times, but the second time more similar than most right first answers:
+    recall stays 7/8, the share a threshold could accept without a false loop falls."""
+    data = TrainingData(
+        np.zeros((8, 4), np.float32),
+        np.zeros((8, 1), np.float32),
+        np.arange(8) % 4,
+        np.r_[np.arange(4), np.arange(4)],
+        np.array(["a"] * 4 + ["b"] * 4),
+    )
+    pairs = np.stack([np.arange(4, 8), np.arange(4)], axis=1)
+    robot_b = np.diag([1.0, 0.9, 0.9, 0.1])
+
+    def scores(wrong_similarity: float) -> PairScores:
+        revisits = robot_b.copy()
+        revisits[3, 0] = wrong_similarity
+        return pair_scores(np.concatenate([np.eye(4), revisits]), data, pairs, window=0)
+
+    before, after = scores(0.3), scores(0.95)
+    assert before.recall == after.recall == 7 / 8
+    assert (before.separated, after.separated) == (6 / 8, 2 / 8)
+
+
+def test_a_refusal_names_the_held_out_pairs_score_that_fell() -> None:
+    gate = {
+        "pairs": 12,
+        "active": 0.5,
+        "new": 0.6,
+        "change": 0.1,
+        "mrr_active": 0.6,
+        "mrr_new": 0.7,
+        "separated_active": 0.5,
+        "separated_new": 0.25,
+        "pairs_not_worse": False,
+        "not_worse": False,
+    }
+    assert verdict(gate, activated=False) == (
+        "was not activated: worse on held-out pairs: found above every wrong first answer "
+        "0.500 -> 0.250 (a gain: held-out pairs (12) find their partner first 0.500 -> 0.600)"
+    )

@@ -65,7 +65,7 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
     lines = _section(
         "Jobs run during the served replays",
         "method | L | job | milestone | after frame | status | version | frames fitted "
-        "| min inliers | seconds",
+        "| min inliers | seconds | message",
         "A frame whose insert reached a calibration milestone (a calibrate job) or whose "
         "observation brought the atlas's new revisit pairs to the setting's number (an adapt "
         "job, rows `-adaptN`) queued the job; it ran before the next frame, which the new model "
@@ -77,10 +77,12 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
                 f"| {row['method']} | {row['settings']['length']} | {job['kind']} | "
                 f"{job['milestone']} | {job['frame']} | {job['status']} | "
                 f"{job['model_version']} | {job['frames_at_fit']} | {job['min_inliers']} | "
-                f"{job['seconds']:.1f} |"
+                f"{job['seconds']:.1f} | {job.get('message', '')} |"
             )
         if not row["jobs"]:
-            lines.append(f"| {row['method']} | {row['settings']['length']} | none | | | | | | | |")
+            lines.append(
+                f"| {row['method']} | {row['settings']['length']} | none | | | | | | | | |"
+            )
     return lines
 
 

@@ -47,10 +47,12 @@ class JobRun:
     Attributes:
         frame: the trajectory frame whose insert queued it (its atlas then held frame + 1).
         milestone: the calibration milestone it was queued for (None: another kind).
-        model_version: the version it made active (None: it made none).
+        model_version: the version it published (None: it published none).
         seconds: wall time of the job and of loading its version.
         frames_at_fit: frames the calibration was fitted on.
         min_inliers: the minimum inliers it calibrated on the atlas's hard impostors.
+        message: the job's one line to the operator (whether its version became active, and
+            the gate's figures for an adapt job).
     """
 
     job_id: int
@@ -63,6 +65,7 @@ class JobRun:
     frames_at_fit: int | None = None
     min_inliers: int | None = None
     error: str | None = None
+    message: str = ""
 
 
 @dataclass
@@ -164,6 +167,7 @@ def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
         frames_at_fit=metrics.get("frames_at_fit"),
         min_inliers=verification.get("min_inliers"),
         error=job.error,
+        message=job.message or "",
     )
 
 

@@ -144,3 +144,7 @@ def test_eval_online_command_slices_and_reports_the_served_row(tmp_path, capsys)
         ("calibrate", 32, 31),
     ]
     assert all(j["status"] == "succeeded" for j in adapting["jobs"])
+    # each job's line to the operator comes with it (an adapt job's: the gate's verdict)
+    assert all(
+        j["message"].startswith(f"model version {j['model_version']} ") for j in adapting["jobs"]
+    )

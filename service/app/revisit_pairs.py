@@ -195,10 +195,12 @@ def get_pair(sessions: sessionmaker[Session], *, atlas: str, pair_id: int) -> Pa
         return PairRow(*row)
 
 
-def pair_frames(session: Session, *, atlas_id: int, where: PairFilter) -> list[tuple[int, int]]:
-    """The (frame, other frame) ids of every pair under ``where``, oldest first."""
+def pair_frames(
+    session: Session, *, atlas_id: int, where: PairFilter
+) -> list[tuple[int, int, int]]:
+    """The (pair, frame, other frame) ids of every pair under ``where``, oldest first."""
     query = _filtered(atlas_id, where).order_by(RevisitPair.id)
-    return [(row[0].frame_id, row[0].other_frame_id) for row in session.execute(query)]
+    return [(row[0].id, row[0].frame_id, row[0].other_frame_id) for row in session.execute(query)]
 
 
 def pair_sources(session: Session, *, atlas_id: int, where: PairFilter) -> dict[str, int]:

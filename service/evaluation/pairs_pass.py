@@ -189,7 +189,7 @@ def observed_pairs_runs(
                 recorded = pair_frames(session, atlas_id=atlas_id, where=where)
                 sources = pair_sources(session, atlas_id=atlas_id, where=where)
             pairs = np.array(
-                [(query_of[a], frame_to_reference.get(b, -1)) for a, b in recorded], np.int64
+                [(query_of[a], frame_to_reference.get(b, -1)) for _, a, b in recorded], np.int64
             ).reshape(-1, 2)
             right = np.array([ref in dataset.queries[q].positives for q, ref in pairs], dtype=bool)
             job = _adapt(service, atlas_id)

@@ -46,9 +46,9 @@ def run_adaptation(
         stored = load_model_inputs(session, atlas_id, calibration)
         chosen = pair_frames(session, atlas_id=atlas_id, where=config.pair_filter())
     row_of = {int(frame): i for i, frame in enumerate(stored.ids)}
-    pairs = np.array(
-        [(row_of[a], row_of[b]) for a, b in chosen if a in row_of and b in row_of], np.int64
-    )
+    found = [(p, row_of[a], row_of[b]) for p, a, b in chosen if a in row_of and b in row_of]
+    pair_ids = np.array([p for p, _, _ in found], np.int64)
+    pairs = np.array([(a, b) for _, a, b in found], np.int64).reshape(-1, 2)
     data = TrainingData(
         stored.local, stored.global_, stored.submaps, stored.ids, np.asarray(stored.robots)
     )
@@ -62,6 +62,7 @@ def run_adaptation(
         min_pairs=config.min_pairs,
         whiten=config.whitens,
         pair_loss=PairLossConfig() if config.trains_on_pairs else None,
+        active_trained=in_ranges(pair_ids, (active_config.training or {}).get(TRAINED_PAIRS)),
     )
     gate = result.gate
     activate = gate["not_worse"] or runner.settings.retrain_activate_worse
@@ -89,7 +90,11 @@ def run_adaptation(
         models_store.VersionConfig(
             result.heads.config,
             trained=True,
-            training={"adapt": params, "method": METHOD_TEXT[config.method]},
+            training={
+                "adapt": params,
+                "method": METHOD_TEXT[config.method],
+                TRAINED_PAIRS: id_ranges(pair_ids, result.trained_rows),
+            },
             job_id=job_id,
             calibration=version_calibration,
         ),
@@ -99,6 +104,32 @@ def run_adaptation(
         message=f"model version {version} {verdict(gate, activate)}",
     )
     return version
+
+
+TRAINED_PAIRS = "trained_pairs"  # a version's training record: the pair ids it learned from
+
+
+def id_ranges(ids: np.ndarray, rows: np.ndarray) -> list[list[int]]:
+    """``ids[rows]`` as ``[first, last]`` ranges, one per run of consecutive rows (a job's
+    training pairs are whole blocks of the pairs in recording order: a few ranges)."""
+    rows = np.sort(np.asarray(rows, np.int64))
+    if len(rows) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(rows) != 1)
+    starts, ends = np.r_[rows[0], rows[breaks + 1]], np.r_[rows[breaks], rows[-1]]
+    return [[int(ids[a]), int(ids[b])] for a, b in zip(starts, ends, strict=True)]
+
+
+def in_ranges(ids: np.ndarray, ranges: list[list[int]] | None) -> np.ndarray | None:
+    """Per id, whether it lies in one of ``ranges`` (None: no record, e.g. a calibrated
+    version, which learned from no pair). A pair recorded inside a range that the job's
+    choice left out counts as learned from: it then trains, it is never wrongly judged on."""
+    if ranges is None:
+        return None
+    inside = np.zeros(len(ids), bool)
+    for first, last in ranges:
+        inside |= (ids >= first) & (ids <= last)
+    return inside
 
 
 def verdict(gate: dict[str, Any], activated: bool) -> str:

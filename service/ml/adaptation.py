@@ -3,7 +3,8 @@
 What an ``adapt`` job (service/jobs/adaptation.py) and the harness's revisit rows both run:
 
 1. the pairs are split into training pairs and held-out pairs (whole blocks of them, in the
-   order they were recorded: neighbouring pairs of one drive are near-copies of each other);
+   order they were recorded: neighbouring pairs of one drive are near-copies of each other;
+   never a pair the active version learned from);
 2. a :class:`PairWhitening` is fitted on every frame of the atlas and the training pairs
    (optionally fine-tuned with a listwise loss over them, :mod:`service.ml.pair_loss`), and
    folded into heads over the same branches (:func:`fold_into_heads`);
@@ -50,13 +51,15 @@ class AdaptationResult:
     """The adapted heads, the whitening folded into them, the gate's verdict and figures, and
     ``impostor_refit``: the same fit without an impostor probe's held-out frames, which the
     version's impostor model is refitted with (its score must not call a query's impostors
-    rarer than they are)."""
+    rarer than they are). ``trained_rows``: the given pairs the fit learned from (a later
+    job must not judge this version on them)."""
 
     heads: LoopNetHeads
     whitening: PairWhitening
     gate: dict[str, Any]
     metrics: dict[str, Any]
     impostor_refit: ProbeRefit
+    trained_rows: np.ndarray
 
 
 def probe_refit(
@@ -92,15 +95,20 @@ def fitted_start(
     return identity_start(frames, len(differences))
 
 
-def split_pairs(count: int, share: float = HELD_OUT_SHARE) -> tuple[np.ndarray, np.ndarray]:
+def split_pairs(
+    count: int, share: float = HELD_OUT_SHARE, trained: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Indices of training and held-out pairs among ``count`` recorded in order: about
-    ``share`` of them held out, as evenly spaced whole blocks."""
-    if count < 2:
+    ``share`` of them held out, as evenly spaced whole blocks. ``trained`` (bool per pair):
+    pairs the active version learned from, never held out (the gate would judge it on its
+    own training pairs); the blocks are cut from the others."""
+    fresh = np.arange(count) if trained is None else np.flatnonzero(~np.asarray(trained, bool))
+    if len(fresh) < 2:
         return np.arange(count), np.zeros(0, dtype=np.int64)
-    blocks = np.minimum(np.arange(count) * HELD_OUT_BLOCKS // count, HELD_OUT_BLOCKS - 1)
+    blocks = np.minimum(np.arange(len(fresh)) * HELD_OUT_BLOCKS // len(fresh), HELD_OUT_BLOCKS - 1)
     every = max(2, round(1 / share))
-    held = (blocks % every) == every // 2
-    return np.flatnonzero(~held), np.flatnonzero(held)
+    held = fresh[(blocks % every) == every // 2]
+    return np.setdiff1d(np.arange(count), held), held
 
 
 class PairScores(NamedTuple):
@@ -192,11 +200,13 @@ def adapt_heads(
     held_out_pairs: np.ndarray | None = None,
     whiten: bool = True,
     pair_loss: PairLossConfig | None = None,
+    active_trained: np.ndarray | None = None,
 ) -> AdaptationResult:
     """Fit a learned whitening on ``data`` (the active version's branch inputs of every atlas
     frame) and ``pairs`` (``P x 2`` row indices), fold it into heads, and gate them against
     ``active`` (the heads serving now). ``held_out_pairs``: which pairs judge (None: whole
-    blocks of them, :func:`split_pairs`). ``whiten`` False starts from the centred input;
+    blocks of them, :func:`split_pairs`, never one of ``active_trained``, bool per pair: those
+    the active version learned from). ``whiten`` False starts from the centred input;
     ``pair_loss`` set fine-tunes the start on the training pairs (:mod:`service.ml.pair_loss`),
     stopping early on whole blocks of them kept out of the loss."""
     started = time.perf_counter()
@@ -204,16 +214,20 @@ def adapt_heads(
     base = active.config
     inputs = fused_inputs(base, data.local, data.global_)
     # a pair of identical vectors (the same image twice) says nothing about a change of view
-    pairs = pairs[np.any(inputs[pairs[:, 0]] != inputs[pairs[:, 1]], axis=1)]
+    usable = np.flatnonzero(np.any(inputs[pairs[:, 0]] != inputs[pairs[:, 1]], axis=1))
+    pairs = pairs[usable]
     if len(pairs) < min_pairs:
         raise NoUsefulPairs(
             f"only {len(pairs)} usable revisit pair(s) match the job's choice; adaptation needs "
             f"at least {min_pairs} (closures observe kept: verified or its sequence's loops; "
             "or labelled pairs)"
         )
+    trained_rows = usable
     if held_out_pairs is None:
-        train_idx, held_idx = split_pairs(len(pairs))
+        seen = None if active_trained is None else np.asarray(active_trained, bool)[usable]
+        train_idx, held_idx = split_pairs(len(pairs), trained=seen)
         train, held = pairs[train_idx], pairs[held_idx]
+        trained_rows = usable[train_idx]
     else:
         train, held = pairs, np.asarray(held_out_pairs, np.int64).reshape(-1, 2)
 
@@ -252,7 +266,7 @@ def adapt_heads(
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
     refit = probe_refit(base, differences, config, whiten=whiten, tune=repeat)
-    return AdaptationResult(heads, whitening, gate, metrics, refit)
+    return AdaptationResult(heads, whitening, gate, metrics, refit, trained_rows)
 
 
 def tune_on_pairs(

@@ -15,6 +15,7 @@ from service.api.app import create_app
 from service.app.results import Candidate, QueryResult, SubmapGuess
 from service.app.revisit_pairs import record_verified
 from service.fleet.keys import Role, create_key
+from service.jobs.adaptation import TRAINED_PAIRS, id_ranges, in_ranges
 from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo
@@ -109,6 +110,19 @@ def test_observed_pairs_train_an_adaptation_through_the_worker(
     versions = client.get("/v1/atlases/campus/models").json()
     assert [v["version"] for v in versions] == [1, 2]
     assert versions[1]["is_active"] == metrics["activated"]
+    # the version records the pairs it learned from: a later job never judges it on them
+    learned = in_ranges(
+        np.array([p["id"] for p in pairs]), versions[1]["config"]["training"][TRAINED_PAIRS]
+    )
+    assert learned is not None and int(learned.sum()) == metrics["training_pairs"]
+
+
+def test_a_versions_training_pairs_are_kept_as_ranges_of_ids() -> None:
+    ids = np.array([3, 5, 8, 9, 12])
+    ranges = id_ranges(ids, np.array([4, 0, 3, 1]))
+    assert ranges == [[3, 5], [9, 12]]
+    assert in_ranges(ids, ranges).tolist() == [True, True, False, True, True]
+    assert in_ranges(ids, None) is None and id_ranges(ids, np.zeros(0, int)) == []
 
 
 def test_a_job_without_useful_pairs_is_refused_with_its_reason(app_client: TestClient) -> None:

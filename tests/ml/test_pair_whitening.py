@@ -179,3 +179,26 @@ def test_a_refusal_names_the_held_out_pairs_score_that_fell() -> None:
         "was not activated: worse on held-out pairs: found above every wrong first answer "
         "0.500 -> 0.250 (a gain: held-out pairs (12) find their partner first 0.500 -> 0.600)"
     )
+
+
+def test_the_split_never_holds_out_what_the_active_version_learned_from() -> None:
+    train, held = split_pairs(20)
+    assert len(held) > 0 and sorted([*train, *held]) == list(range(20))
+    learned = np.arange(20) < 12  # the active version learned from the first 12
+    train, held = split_pairs(20, trained=learned)
+    assert len(held) > 0 and held.min() >= 12
+    assert sorted([*train, *held]) == list(range(20))
+    assert len(split_pairs(20, trained=np.ones(20, bool))[1]) == 0
+
+
+def test_a_second_adaptation_is_judged_on_pairs_neither_version_learned_from() -> None:
+    data, pairs = _two_conditions()
+    active = LoopNetHeads(HeadsConfig(8, 4, alpha=0.9)).eval()
+    first = adapt_heads(data, pairs, active, PairWhiteningConfig(), window=0, min_pairs=10)
+    learned = np.isin(np.arange(60), first.trained_rows)
+    assert 0 < learned.sum() < 60
+    second = adapt_heads(
+        data, pairs, first.heads, PairWhiteningConfig(), window=0, active_trained=learned
+    )
+    held = np.setdiff1d(np.arange(60), second.trained_rows)
+    assert len(held) == second.gate["pairs"] > 0 and not learned[held].any()

@@ -354,16 +354,22 @@ def observed_pairs_rows(
 
 
 def _figures(method: MethodResult) -> dict[str, float]:
-    """R@1, R@100%P and the wrong best answers' median score excess (the decision's score
-    part: calibrated score - log10 of the atlas's frames; NaN where no wrong answer had one)."""
+    """R@1, R@100%P and the wrong and the right best answers' median score excess (the
+    decision's score part: calibrated score - log10 of the atlas's frames; NaN where no such
+    answer had one): an adapted version's score must keep its meaning for both."""
     parts = np.asarray(method.details["per_query_parts"], np.float64).reshape(-1, len(PARTS))
     right = np.asarray(method.details["per_query_right"], bool)
-    wrong_scores = parts[~right, PARTS.index("score")]
-    wrong_scores = wrong_scores[np.isfinite(wrong_scores)]
+    scores = parts[:, PARTS.index("score")]
+
+    def median(chosen: np.ndarray) -> float:
+        found = scores[chosen & np.isfinite(scores)]
+        return float(np.median(found)) if len(found) else float("nan")
+
     return {
         "recall@1": method.recall[1],
         "recall_at_100_precision": method.recall_at_full_precision,
-        "wrong_score_median": float(np.median(wrong_scores)) if len(wrong_scores) else float("nan"),
+        "wrong_score_median": median(~right),
+        "right_score_median": median(right),
     }
 
 

@@ -120,8 +120,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
     lines = [
         "| pairs from | K | observed (answers) | pairs recorded (right) | adapt job | test queries "
         "| R@1 before → after (served) | R@100%P before → after (served) "
-        "| wrong-match score excess median before → after (served) |",
-        "|" + " --- |" * 9,
+        "| wrong-match score excess median before → after (served) "
+        "| right-match score excess median before → after (served) |",
+        "|" + " --- |" * 10,
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
@@ -137,7 +138,8 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {row['pairs']} ({row['pairs_right']}{_by_source(row)}) "
             f"| {job['status']}: {job['message']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} "
-            f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} |"
+            f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} "
+            f"| {arrow('right_score_median', row)} |"
         )
     lines += [
         "",
@@ -146,9 +148,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "(right: its frame is a right reference by the ground truth); a real adapt job with its "
         "default parameters learns from them and its gate decides. Test queries = the other "
         "queries, over the map's frames. After = the job's version (measured even when the gate "
-        "kept it back); served = the version the gate left active. Wrong-match score excess: "
-        "the decision's score part of wrong best answers (calibrated score - log10 of the "
-        "atlas's frames, clipped to [-4, 8]), median. Pairs from `labelled`: the frames are "
+        "kept it back); served = the version the gate left active. Wrong- and right-match score "
+        "excess: the decision's score part of wrong (right) best answers (calibrated score - "
+        "log10 of the atlas's frames, clipped to [-4, 8]), median. Pairs from `labelled`: the frames are "
         "stored instead and each labelled as a pair with its partner reference (the revisit "
         "protocol as served). Pairs from `stream`: K is a percent; the first K % of the "
         "queries, in order, are observed as one robot's drive (its sequence on), every closure "

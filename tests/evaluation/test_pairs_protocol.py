@@ -191,7 +191,7 @@ def test_the_rows_report_before_after_and_served(protocol_run) -> None:  # type:
     assert row["test_queries"] == len(many.test) and row["observed"] == len(many.observed)
     side = "after" if many.activated else "before"
     assert row["served"] == ("adapted" if many.activated else "starting")
-    for key in ("recall@1", "recall_at_100_precision", "wrong_score_median"):
+    for key in ("recall@1", "recall_at_100_precision", "wrong_score_median", "right_score_median"):
         assert row[f"{key}_served"] == row[f"{key}_{side}"] or np.isnan(row[f"{key}_served"])
     assert 0.0 <= row["recall@1_after"] <= 1.0 and 0.0 <= row["recall@1_before"] <= 1.0
 

@@ -77,7 +77,7 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
                 f"| {row['method']} | {row['settings']['length']} | {job['kind']} | "
                 f"{job['milestone']} | {job['frame']} | {job['status']} | "
                 f"{job['model_version']} | {job['frames_at_fit']} | {job['min_inliers']} | "
-                f"{job['seconds']:.1f} | {job.get('message', '')} |"
+                f"{job['seconds']:.1f} | {job['message']} |"
             )
         if not row["jobs"]:
             lines.append(

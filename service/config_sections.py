@@ -10,6 +10,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings
 
+from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE
+
 
 class StorageSettings(BaseSettings):
     """Storage and processes."""
@@ -154,6 +156,14 @@ class DecisionSettings(BaseSettings):
         "(service.ml.verification.DEFAULT_MIN_INLIERS).",
     )
     verify_ratio: float = Field(0.9, gt=0.0, le=1.0, description="Lowe's ratio of the MNN matcher.")
+    verify_scale_tolerance: float = Field(
+        DEFAULT_SCALE_TOLERANCE,
+        ge=0.0,
+        description="How verified candidates are ordered: by their inliers, each discounted by e "
+        "per this much of |ln zoom| between the query's inliers and the candidate's "
+        "(service.ml.verification.support): frames a few metres apart along one view share many "
+        "inliers, the zoom says which one was taken where the query was. 0: inliers alone.",
+    )
     ransac_threshold_px: float = Field(
         3.0,
         gt=0.0,

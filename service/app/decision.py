@@ -9,6 +9,7 @@ from service.app.results import Candidate, SequenceAnswer
 from service.app.sequences import Verdict
 from service.ml.decision import CANDIDATE_PROBABILITY, Decision, Evidence
 from service.ml.sequences import PlaceStatus
+from service.ml.viewpoint import support
 
 # Up to this many frames an atlas is small: every frame the search returns is verified, since
 # its global ranking is the least reliable (no calibration yet) and verifying all costs little.
@@ -35,14 +36,23 @@ def is_rival(best: Candidate, other: Candidate) -> bool:
 
 
 def answer_evidence(
-    candidates: list[Candidate], frames: int, sequence: SequenceAnswer | None
+    candidates: list[Candidate],
+    frames: int,
+    sequence: SequenceAnswer | None,
+    scale_tolerance: float = 0.0,
 ) -> Evidence | None:
     """The decision's evidence for the best candidate (``candidates`` in their final order);
-    None without candidates."""
+    None without candidates. The rival's inliers are counted in the best's terms: both
+    discounted by their zoom as the re-rank discounts them (``scale_tolerance``)."""
     if not candidates:
         return None
     best = candidates[0]
-    rivals = [c.inliers for c in candidates[1:] if c.inliers is not None and is_rival(best, c)]
+    per_inlier = support(1, best.scale, scale_tolerance)
+    rivals = [
+        support(c.inliers, c.scale, scale_tolerance) / per_inlier
+        for c in candidates[1:]
+        if c.inliers is not None and is_rival(best, c)
+    ]
     score_excess = best.score - math.log10(max(frames, 1)) if best.score is not None else None
     return Evidence(
         inliers=best.inliers,

@@ -197,7 +197,15 @@ class AtlasQueries(Observations):
                     candidate.inlier_ratio = round(verified.inlier_ratio, 4)
                     candidate.verified = verified.verified
                     candidate.relative_pose = verified.relative_pose
-            order = rerank([c.similarity for c in candidates], [c.inliers for c in candidates])
+                    candidate.scale = (
+                        round(verified.scale, 4) if verified.scale is not None else None
+                    )
+            order = rerank(
+                [c.similarity for c in candidates],
+                [c.inliers for c in candidates],
+                [c.scale for c in candidates],
+                scale_tolerance=config.scale_tolerance,
+            )
             candidates = [candidates[i] for i in order]
             timings["verification"] = (time.perf_counter() - start) * 1000.0
         if prediction is None:
@@ -222,7 +230,9 @@ class AtlasQueries(Observations):
         )
         sequence = found.evidence.sequence if found.evidence is not None else None
         decision = decide_loop(
-            answer_evidence(candidates, state.index.size, sequence),
+            answer_evidence(
+                candidates, state.index.size, sequence, self.verification.config.scale_tolerance
+            ),
             threshold=self.settings.loop_probability_min,
             verify=enabled,
             min_inliers=min_inliers if enabled else None,

@@ -41,6 +41,7 @@ class Candidate:
     inlier_ratio: float | None = None
     verified: bool = False
     relative_pose: RelativePose | None = None
+    scale: float | None = None  # the inliers' zoom from the query to this frame
 
 
 @dataclass

@@ -29,6 +29,7 @@ def verification_config(settings: Settings, local_extractor: str) -> Verificatio
         ransac=RansacConfig(
             threshold_px=settings.ransac_threshold_px, backend=settings.ransac_backend
         ),
+        scale_tolerance=settings.verify_scale_tolerance,
     )
 
 

@@ -40,6 +40,7 @@ DEFAULTS = (
     "matcher",
     "verify_min_inliers",
     "verify_ratio",
+    "verify_scale_tolerance",
     "ransac_threshold_px",
     "loop_probability_min",
     "sequence_length",
@@ -62,7 +63,7 @@ class ServedAnswers:
     verification: dict[str, Any] = field(default_factory=dict)
     sequence_length: int = 0
     # per query, its answer's candidates in served order: (reference, similarity, score,
-    # inliers, inlier ratio), NaN where absent, to study the re-rank offline
+    # inliers, inlier ratio, zoom), NaN where absent, to study the re-rank offline
     candidates: list[list[list[float]]] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
@@ -163,7 +164,7 @@ def served_answers(
 
 def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> list[list[float]]:
     """The answer's candidates in served order as (reference index or -1, similarity,
-    calibrated score, inliers, inlier ratio), NaN where a candidate lacks one."""
+    calibrated score, inliers, inlier ratio, zoom), NaN where a candidate lacks one."""
 
     def number(value: float | None) -> float:
         return float("nan") if value is None else round(float(value), 4)
@@ -175,6 +176,7 @@ def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> l
             number(c.score),
             number(c.inliers),
             number(c.inlier_ratio),
+            number(c.scale),
         ]
         for c in answer.candidates
     ]

@@ -160,14 +160,16 @@ def verify_ranking(
         row = [int(i) for i in base.indices[q] if i >= 0]
         similarities = [float(s) for s in base.scores[q][: len(row)]]
         inliers: list[int | None] = [None] * len(row)
+        scales: list[float | None] = [None] * len(row)
         spent = 0.0
         for position, reference in enumerate(row[: config.top]):
             found = verifier.verify(query_view, cache.view(dataset.references[reference].path))
             inliers[position] = found.inliers
+            scales[position] = found.scale
             candidate_ms.append(found.ms)
             spent += found.ms
         query_ms.append(spent)
-        order = rerank(similarities, inliers)
+        order = rerank(similarities, inliers, scales, scale_tolerance=config.scale_tolerance)
         reranked = [row[i] for i in order]
         indices[q, : len(reranked)] = reranked
         best = order[0] if order else None

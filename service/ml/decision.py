@@ -63,8 +63,8 @@ class Evidence:
     Attributes:
         inliers: RANSAC inliers of the best candidate (None: verification off or not verified).
         inlier_ratio: its inliers / tentative matches.
-        rival_inliers: most inliers of a verified candidate of another place (None: none was
-            verified).
+        rival_inliers: most inliers of a verified candidate of another place, in the best's
+            terms when the re-rank weighs zoom (service.app.decision; None: none was verified).
         score_excess: calibrated score minus log10 of the atlas's frames (None: uncalibrated).
         sequence_margin: the robot's sequence margin (None: no robot or no sequence).
         frames: frames in the atlas.
@@ -72,7 +72,7 @@ class Evidence:
 
     inliers: int | None = None
     inlier_ratio: float | None = None
-    rival_inliers: int | None = None
+    rival_inliers: float | None = None
     score_excess: float | None = None
     sequence_margin: float | None = None
     frames: int = 0

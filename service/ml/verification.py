@@ -25,6 +25,7 @@ from service.ml.two_view import (
     estimate_two_view_many,
     rotation_to_quaternion,
 )
+from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, support, viewpoint_scale
 
 # Minimum RANSAC inliers for a verified candidate, per matcher: LightGlue returns several times
 # more (and more reliable) matches than MNN + ratio, so its bar is higher. Chosen for 100%
@@ -47,6 +48,8 @@ class VerificationConfig:
         min_inliers: RANSAC inliers at or above which a candidate is verified.
         ratio: Lowe's ratio of the MNN matcher.
         ransac: RANSAC settings.
+        scale_tolerance: how much the re-rank trusts the inliers' zoom (:func:`support`);
+            0: candidates ordered by their inliers alone.
     """
 
     matcher: str = "mnn"
@@ -54,6 +57,7 @@ class VerificationConfig:
     min_inliers: int = 20
     ratio: float = 0.9
     ransac: RansacConfig = RansacConfig()
+    scale_tolerance: float = DEFAULT_SCALE_TOLERANCE
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,8 @@ class Verification:
         model: "essential", "fundamental" or "none".
         relative_pose: with an essential matrix (both frames have intrinsics), else None.
         ms: milliseconds spent (matching + RANSAC).
+        scale: the inliers' zoom from the query to the candidate (:func:`viewpoint_scale`);
+            None with fewer than 8 inliers.
         inlier_pairs: ``inliers x 2`` int64 (index in the query's keypoints, index in the
             candidate's), only when :meth:`Verifier.verify` was asked to keep them.
     """
@@ -97,6 +103,7 @@ class Verification:
     model: str
     relative_pose: RelativePose | None
     ms: float
+    scale: float | None = None
     inlier_pairs: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
@@ -137,18 +144,31 @@ class Verifier:
         )
         ms = (time.perf_counter() - start) * 1000.0 / max(1, len(candidates))
         return [
-            self._outcome(matches, geometry, ms, keep_inliers)
-            for matches, geometry in zip(found, geometries, strict=True)
+            self._outcome(matches, geometry, ms, keep_inliers, query, c)
+            for matches, geometry, c in zip(found, geometries, candidates, strict=True)
         ]
 
     def _outcome(
-        self, matches: Matches, geometry: TwoViewGeometry, ms: float, keep_inliers: bool
+        self,
+        matches: Matches,
+        geometry: TwoViewGeometry,
+        ms: float,
+        keep_inliers: bool,
+        query: View,
+        candidate: View,
     ) -> Verification:
         pose = None
         if geometry.rotation is not None and geometry.translation is not None:
             tx, ty, tz = (float(v) for v in geometry.translation)
             pose = RelativePose(rotation_to_quaternion(geometry.rotation), (tx, ty, tz))
         inliers = geometry.inliers
+        pairs = matches.pairs[geometry.inlier_mask]
+        scale = viewpoint_scale(
+            query.local.keypoints[pairs[:, 0]],
+            candidate.local.keypoints[pairs[:, 1]],
+            view_unit(query),
+            view_unit(candidate),
+        )
         return Verification(
             matches=matches.count,
             inliers=inliers,
@@ -157,7 +177,8 @@ class Verifier:
             model=geometry.model,
             relative_pose=pose,
             ms=ms,
-            inlier_pairs=matches.pairs[geometry.inlier_mask] if keep_inliers else None,
+            scale=scale,
+            inlier_pairs=pairs if keep_inliers else None,
         )
 
 
@@ -167,13 +188,31 @@ def _camera(intrinsics: Intrinsics | None) -> np.ndarray | None:
     return camera_matrix(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
 
 
-def rerank(similarities: Sequence[float], inliers: Sequence[int | None]) -> list[int]:
-    """The order of candidates after verification: verified-then-unverified by inliers (most
-    first, ties by similarity); candidates that were not verified (None) keep their retrieval
-    order after every verified one."""
+def view_unit(view: View) -> float:
+    """The length that makes a frame's pixels comparable with another camera's: the focal
+    length when the frame has intrinsics, else the image's long side (cameras of equal field
+    of view)."""
+    if view.intrinsics is not None:
+        return float(view.intrinsics.fx + view.intrinsics.fy) / 2.0
+    return float(max(view.image_size))
+
+
+def rerank(
+    similarities: Sequence[float],
+    inliers: Sequence[int | None],
+    scales: Sequence[float | None] | None = None,
+    *,
+    scale_tolerance: float = 0.0,
+) -> list[int]:
+    """The order of candidates after verification: verified-then-unverified by
+    :func:`support` (most first, ties by similarity); candidates that were not verified
+    (None) keep their retrieval order after every verified one."""
+    zooms = list(scales) if scales is not None else [None] * len(inliers)
     checked = [i for i, n in enumerate(inliers) if n is not None]
     unchecked = [i for i, n in enumerate(inliers) if n is None]
-    checked.sort(key=lambda i: (-(inliers[i] or 0), -similarities[i], i))
+    checked.sort(
+        key=lambda i: (-support(inliers[i], zooms[i], scale_tolerance), -similarities[i], i)
+    )
     return checked + unchecked
 
 

@@ -204,6 +204,9 @@ def test_query_page_finds_the_place(console: Console) -> None:
     assert f"loop_probability {answer.decision.loop_probability:.3f} (a loop needs 0.98)" in why
     thumbnails_loaded(page, "[data-testid=candidate] img")
     assert page.locator("[data-testid=candidate]").count() == 5
+    if answer.match.scale is not None:  # where the match was taken, as the re-rank read it
+        best = page.locator("[data-testid=candidate]").first.text_content() or ""
+        assert f"zoom {answer.match.scale:.2f}" in best
     shoot(page, "query")
     page.close()
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from service.app.decision import SMALL_ATLAS_FRAMES, verified_count
 from service.ml.decision import DEFAULT_LOOP_PROBABILITY, Evidence, decide_loop
 
@@ -95,3 +97,18 @@ def test_a_match_no_rarer_than_the_best_impostor_is_never_a_loop() -> None:
     decision = decide_loop(evidence, min_inliers=44)
     assert not decision.passed and decision.failed == "score"
     assert decision.reason is not None and "log10(400)" in decision.reason
+
+
+def test_the_rival_counts_in_the_best_candidates_terms_when_zoom_weighs() -> None:
+    """With the re-rank weighing zoom, a rival further back (zoom 0.7) with more inliers than
+    the best (zoom 1.0) counts as what it weighs: 50 * exp(-|ln 0.7| / 0.5) = 24.5."""
+    from service.app.decision import answer_evidence
+    from service.app.results import Candidate
+
+    best = Candidate(13, "s", "r", 0.9, 40, None, 0.9, False, scale=1.0)
+    rival = Candidate(10, "s", "r", 0.9, 50, None, 0.9, True, scale=0.7)
+    plain = answer_evidence([best, rival], 10, None)
+    assert plain is not None and plain.rival_inliers == 50
+    weighed = answer_evidence([best, rival], 10, None, scale_tolerance=0.5)
+    assert weighed is not None
+    assert weighed.rival_inliers == pytest.approx(50 * 0.7**2)

@@ -76,6 +76,7 @@ function showAnswer(result, atlas, answer) {
       thumbImg(atlas, c.frame_id),
       h("div", {}, h("strong", {}, `#${i + 1} frame ${c.frame_id}`), ` · ${c.submap} · ${c.robot_id}`),
       h("div", {}, `similarity ${fmt.num(c.similarity)}`),
-      h("div", {}, c.inliers === null ? "not verified" : `${c.inliers} inliers (${fmt.num(c.inlier_ratio, 2)}) `,
+      h("div", {}, c.inliers === null ? "not verified" : `${c.inliers} inliers (${fmt.num(c.inlier_ratio, 2)})` +
+        (c.scale == null ? " " : ` · zoom ${fmt.num(c.scale, 2)} `),
         c.verified ? h("span", { class: "badge ok" }, "verified") : null)))));
 }

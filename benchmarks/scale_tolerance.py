@@ -1,0 +1,130 @@
+"""How the re-rank's zoom tolerance was chosen: the served answers of a ``loopnet eval`` run made
+with the zoom off (``LOOPNET_VERIFY_SCALE_TOLERANCE=0``) re-ranked offline for each tolerance,
+their decision recomputed as the service computes it, figures per half of the queries (route
+order). Choose on the FIRST half of a development set, read the second half as held out.
+
+    LOOPNET_VERIFY_SCALE_TOLERANCE=0 loopnet eval ../shared/data/gardenspoint_cohog200 \\
+        --tolerance 2 --long-side 256 --extractors disk ... --out RUN
+    python benchmarks/scale_tolerance.py RUN/report.json ../shared/data/gardenspoint_cohog200 \\
+        --tolerance 2 --tolerances 0,1,0.7,0.5,0.35,0.25
+
+Anonymous queries only (the served row of a run without ``--sequence``): the decision's parts
+are the inliers, the inlier ratio, the rival (references are one robot's frames in route
+order, so a rival is a reference more than ``RIVAL_GAP`` away) and the calibrated score. The
+re-rank and the rival's weighing are the service's own functions. Only the candidates the
+service verified are re-ordered; a query whose top 5 held no right frame stays wrong.
+Nothing here is a service path: it is the record of a choice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.app.decision import RIVAL_GAP
+from service.evaluation.datasets import load_dataset
+from service.evaluation.metrics import precision_recall
+from service.ml.decision import Evidence, decide_loop, probability
+from service.ml.verification import rerank
+from service.ml.viewpoint import support
+
+REFERENCE, SIMILARITY, SCORE, INLIERS, RATIO, ZOOM = range(6)
+
+
+def served_row(report: dict[str, Any]) -> dict[str, Any]:
+    rows = [m for m in report["methods"] if m["name"].endswith("-served")]
+    if not rows:
+        raise SystemExit("no served row in the report (run loopnet eval without --no-served)")
+    return rows[0]
+
+
+def number(value: float) -> float | None:
+    return None if math.isnan(value) else value
+
+
+def answer(
+    rows: list[list[float]], tolerance: float, frames: int, min_inliers: int
+) -> tuple[int, float]:
+    """The re-ranked best reference (-1: none) and its loop probability (0: none)."""
+    if not rows:
+        return -1, 0.0
+    inliers = [None if math.isnan(r[INLIERS]) else int(r[INLIERS]) for r in rows]
+    zooms = [number(r[ZOOM]) for r in rows]
+    order = rerank([r[SIMILARITY] for r in rows], inliers, zooms, scale_tolerance=tolerance)
+    best = order[0]
+    best_row = rows[best]
+    per_inlier = support(1, zooms[best], tolerance)
+    rivals = [
+        support(inliers[i], zooms[i], tolerance) / per_inlier
+        for i in order[1:]
+        if inliers[i] is not None and abs(rows[i][REFERENCE] - best_row[REFERENCE]) > RIVAL_GAP
+    ]
+    score = number(best_row[SCORE])
+    evidence = Evidence(
+        inliers=inliers[best],
+        inlier_ratio=number(best_row[RATIO]),
+        rival_inliers=max(rivals) if rivals else None,
+        score_excess=score - math.log10(frames) if score is not None else None,
+        frames=frames,
+    )
+    decision = decide_loop(evidence, min_inliers=min_inliers)
+    if decision.loop_probability is None:
+        return int(best_row[REFERENCE]), 0.0
+    # unrounded, as the served row sweeps it; a loop needs the verified minimum besides
+    swept = probability(decision.parts)
+    return int(best_row[REFERENCE]), swept if decision.passed or swept < 0.98 else 0.979
+
+
+def figures(
+    best: np.ndarray, probability: np.ndarray, positives: list[frozenset[int]]
+) -> dict[str, float]:
+    right = np.array([int(b) in p for b, p in zip(best, positives, strict=True)])
+    answerable = sum(1 for p in positives if p)
+    curve = precision_recall(probability, right, answerable)
+    loops = probability >= 0.98
+    return {
+        "r_at_1": round(float(right.sum() / max(answerable, 1)), 3),
+        "r_at_100p": round(curve.recall_at_full_precision, 3),
+        "loops": int(loops.sum()),
+        "false_loops": int((loops & ~right).sum()),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("report", type=Path)
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--tolerance", type=int, default=1, help="the run's frame tolerance")
+    parser.add_argument("--tolerances", default="0,1,0.7,0.5,0.35,0.25")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    row = served_row(json.loads(args.report.read_text()))
+    candidates = row["details"]["per_query_candidates"]
+    if candidates and candidates[0] and len(candidates[0][0]) <= ZOOM:
+        raise SystemExit("the report's candidates have no zoom column: re-run loopnet eval")
+    min_inliers = int(row["details"]["verification"]["min_inliers"])
+    dataset = load_dataset(args.dataset, tolerance=args.tolerance)
+    positives = [q.positives for q in dataset.queries]
+    frames = len(dataset.references)
+    half = len(positives) // 2
+    result: dict[str, Any] = {}
+    for tolerance in (float(t) for t in args.tolerances.split(",")):
+        answers = [answer(rows, tolerance, frames, min_inliers) for rows in candidates]
+        best = np.array([a[0] for a in answers])
+        probability = np.array([a[1] for a in answers])
+        result[str(tolerance)] = {
+            which: figures(best[sl], probability[sl], positives[sl])
+            for which, sl in (("first half", slice(0, half)), ("second half", slice(half, None)))
+        }
+        print(tolerance, json.dumps(result[str(tolerance)]))
+    if args.out:
+        args.out.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from service.evaluation.datasets import load_dataset
-from service.evaluation.service_pass import CachedFeatures, LocalFeatureCache
+from service.evaluation.feature_cache import CachedFeatures, LocalFeatureCache
 from service.ml.aggregation import l2_normalize
 from service.ml.calibration import Calibration, CalibrationConfig, CalibrationInputs
 from service.ml.whitening import WhiteningConfig

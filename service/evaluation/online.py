@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from service.evaluation.feature_cache import CachedFeatures
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.metrics import precision_recall, summary
 from service.evaluation.online_features import trajectory_local, trajectory_vectors
@@ -35,7 +36,6 @@ from service.evaluation.online_served import (
     served_replay,
 )
 from service.evaluation.online_service import service_observations
-from service.evaluation.service_pass import CachedFeatures
 from service.ml.heads import HeadsConfig, LoopNetHeads
 from service.ml.pipeline import FeaturePipeline, embed_vectors
 from service.ml.sequences import (

@@ -16,9 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.evaluation.datasets import Dataset, ReferenceFrame
-from service.evaluation.loop_ground_truth import Trajectory
-from service.evaluation.served_pass import as_stored
-from service.evaluation.service_pass import (
+from service.evaluation.feature_cache import (
     CACHE_ARRAYS,
     CachedFeatures,
     LocalFeatureCache,
@@ -26,6 +24,8 @@ from service.evaluation.service_pass import (
     extract_local_features,
     file_stamp,
 )
+from service.evaluation.loop_ground_truth import Trajectory
+from service.evaluation.served_pass import as_stored
 from service.ml.features import LocalFeatures
 from service.ml.images import decode_image
 from service.ml.pipeline import FeaturePipeline

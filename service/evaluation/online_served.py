@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.app.catalog import AtlasService
+from service.evaluation.feature_cache import CachedFeatures
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.online_service import frame_times, observe_frame, replay_atlas
 from service.evaluation.served_pass import (
@@ -33,7 +34,6 @@ from service.evaluation.served_pass import (
     loop_probability,
     run_job_now,
 )
-from service.evaluation.service_pass import CachedFeatures
 from service.ml.features import LocalFeatures
 from service.ml.pipeline import FeaturePipeline
 

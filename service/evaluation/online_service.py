@@ -29,8 +29,8 @@ from service.app.catalog import AtlasService
 from service.app.ingest import FrameFields
 from service.app.results import QueryResult
 from service.config import Settings
+from service.evaluation.feature_cache import CachedFeatures
 from service.evaluation.loop_ground_truth import Trajectory
-from service.evaluation.service_pass import CachedFeatures
 from service.ml.features import FrameFeatures
 from service.ml.pipeline import FeaturePipeline
 

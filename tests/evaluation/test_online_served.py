@@ -10,11 +10,11 @@ import math
 import numpy as np
 
 from service.evaluation.datasets import load_dataset
+from service.evaluation.feature_cache import cache_path
 from service.evaluation.loop_ground_truth import trajectory_from_traversals
 from service.evaluation.online import OnlineConfig, run_online
 from service.evaluation.online_features import trajectory_cache
 from service.evaluation.served_pass import PARTS
-from service.evaluation.service_pass import cache_path
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import resolve_preset
 from tests.conftest import DATA_DIR, TEST_LONG_SIDE

@@ -1,8 +1,9 @@
 """One pass of a dataset through the service's own code path, for one local extractor.
 
 Each image is decoded and run through the CNNs once by :meth:`AtlasService.extract` (or read
-back from the feature cache, :mod:`service.evaluation.feature_cache`); references are stored with :meth:`AtlasService.ingest_features`
-into a temporary atlas, one submap per protocol submap; queries are answered by
+back from the feature cache, :mod:`service.evaluation.feature_cache`); references are stored
+with :meth:`AtlasService.ingest_features` into a temporary atlas, one submap per protocol
+submap; queries are answered by
 :meth:`AtlasService.query_features`. The stored vectors D and R of every frame are kept, so the
 alpha ablations re-embed them without running a CNN again.
 """

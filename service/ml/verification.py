@@ -166,8 +166,7 @@ class Verifier:
         scale = viewpoint_scale(
             query.local.keypoints[pairs[:, 0]],
             candidate.local.keypoints[pairs[:, 1]],
-            view_unit(query),
-            view_unit(candidate),
+            *view_units(query, candidate),
         )
         return Verification(
             matches=matches.count,
@@ -188,13 +187,17 @@ def _camera(intrinsics: Intrinsics | None) -> np.ndarray | None:
     return camera_matrix(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
 
 
-def view_unit(view: View) -> float:
-    """The length that makes a frame's pixels comparable with another camera's: the focal
-    length when the frame has intrinsics, else the image's long side (cameras of equal field
-    of view)."""
-    if view.intrinsics is not None:
-        return float(view.intrinsics.fx + view.intrinsics.fy) / 2.0
-    return float(max(view.image_size))
+def view_units(query: View, candidate: View) -> tuple[float, float]:
+    """The lengths that make two frames' pixels comparable: their focal lengths when both have
+    intrinsics, else their images' long sides (cameras of equal field of view; a focal length
+    on one side only would mix the two)."""
+    if query.intrinsics is not None and candidate.intrinsics is not None:
+        return _focal(query.intrinsics), _focal(candidate.intrinsics)
+    return float(max(query.image_size)), float(max(candidate.image_size))
+
+
+def _focal(intrinsics: Intrinsics) -> float:
+    return float(intrinsics.fx + intrinsics.fy) / 2.0
 
 
 def rerank(

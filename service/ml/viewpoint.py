@@ -27,9 +27,10 @@ def viewpoint_scale(
 ) -> float | None:
     """How much larger the inliers appear in the candidate than in the query: the ratio of
     their spreads (root mean square distance from their centroid), each divided by its
-    camera's unit (focal length or image long side: ``verification.view_unit``). About 1 for two frames taken from one spot; below 1 when the candidate
-    was taken further back along the view (the scene looks smaller), above 1 further ahead.
-    None with fewer than 8 inliers (as for RANSAC, too few to mean anything)."""
+    camera's unit (focal length or image long side: ``verification.view_units``). About 1 for
+    two frames taken from one spot; below 1 when the candidate was taken further back along
+    the view (the scene looks smaller), above 1 further ahead. None with fewer than 8 inliers
+    (as for RANSAC, too few to mean anything)."""
     if len(query_points) < MIN_SCALE_POINTS:
         return None
     a = query_points.astype(np.float64) / query_unit

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service.ml.geometry import Intrinsics
-from service.ml.verification import View, rerank, view_unit
+from service.ml.verification import View, rerank, view_units
 from service.ml.viewpoint import support, viewpoint_scale
 
 
@@ -32,12 +32,13 @@ def test_scale_needs_eight_spread_inliers() -> None:
     assert viewpoint_scale(same, same, 64.0, 64.0) is None
 
 
-def test_unit_is_the_focal_length_when_known() -> None:
-    local = None  # the unit reads only the size and the intrinsics
+def test_units_are_focal_lengths_only_when_both_frames_have_them() -> None:
+    local = None  # the units read only the sizes and the intrinsics
     plain = View(local, (640, 360))  # type: ignore[arg-type]
-    calibrated = View(local, (640, 360), Intrinsics(500.0, 520.0, 320.0, 180.0))  # type: ignore[arg-type]
-    assert view_unit(plain) == 640.0
-    assert view_unit(calibrated) == 510.0
+    calibrated = View(local, (960, 540), Intrinsics(500.0, 520.0, 480.0, 270.0))  # type: ignore[arg-type]
+    assert view_units(calibrated, calibrated) == (510.0, 510.0)
+    assert view_units(plain, calibrated) == (640.0, 960.0)  # never a focal length and a side
+    assert view_units(calibrated, plain) == (960.0, 640.0)
 
 
 def test_support_discounts_an_e_fold_per_tolerance() -> None:

@@ -124,9 +124,9 @@ class CandidateOut(BaseModel):
     scale: float | None = Field(
         None,
         description="How much larger the inliers appear in this frame than in the query (their "
-        "spread, in focal lengths with intrinsics, else in image long sides): about 1 from one "
-        "spot, below 1 when this frame was taken further back along the view. Null: not "
-        "verified or fewer than 8 inliers.",
+        "spread, in focal lengths when both frames have intrinsics, else in image long sides): "
+        "about 1 from one spot, below 1 when this frame was taken further back along the view. "
+        "Null: not verified or fewer than 8 inliers.",
     )
 
 

@@ -110,12 +110,14 @@ def decision_cost(image: Path, repeats: int) -> None:
     """CPU cost of the loop decision (issue 25) against a default-preset query in one run: the
     query's stages (decode, DISK 512 px / 1024 kp, MobileNetV2 224, verification of 5
     candidates by MNN + RANSAC) beside today's decision (``verification.decide``) and the new
-    one (``answer_evidence`` + ``decide_loop`` + ``probable_candidate``), p50 CPU ms."""
+    one (``answer_evidence`` + ``decide_loop`` + ``probable_candidate``), and the inliers' zoom
+    of 5 candidates with the re-rank that weighs it (stop 35), p50 CPU ms."""
     from service.app.decision import answer_evidence, probable_candidate
     from service.app.results import Candidate
     from service.app.sequences import single_frame_verdict
     from service.ml.decision import decide_loop
-    from service.ml.verification import decide
+    from service.ml.verification import decide, rerank, view_units
+    from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, viewpoint_scale
 
     data = image.read_bytes()
     night = (image.parent.parent / "ref" / image.name).read_bytes()
@@ -131,7 +133,14 @@ def decision_cost(image: Path, repeats: int) -> None:
         backbone.describe(rgb)
         verifier.verify_many(View(local, (rgb.shape[1], rgb.shape[0])), [stored] * 5)
 
-    found = verifier.verify(View(disk.extract(decode_image(data)), stored.image_size), stored)
+    asked = View(disk.extract(decode_image(data)), stored.image_size)
+    found = verifier.verify(asked, stored, keep_inliers=True)
+    assert found.inlier_pairs is not None
+    points = (
+        asked.local.keypoints[found.inlier_pairs[:, 0]],
+        stored.local.keypoints[found.inlier_pairs[:, 1]],
+        *view_units(asked, stored),
+    )
     candidates = [
         Candidate(i, f"s{i // 5}", "r", 0.9 - i * 0.001, found.inliers - i, 0.5, 0.6, True)
         for i in range(32)
@@ -145,14 +154,20 @@ def decision_cost(image: Path, repeats: int) -> None:
         decision = decide_loop(answer_evidence(candidates, 1000, None), min_inliers=44)
         probable_candidate(single_frame_verdict(1, decision.passed), decision)
 
+    def zoom() -> None:
+        scales = [viewpoint_scale(*points) for _ in range(5)]
+        rerank([0.9] * 5, [found.inliers] * 5, scales, scale_tolerance=DEFAULT_SCALE_TOLERANCE)
+
     q = statistics.median(cpu_timed(query, repeats))
     o = statistics.median(cpu_timed(old, repeats * 200))
     n = statistics.median(cpu_timed(new, repeats * 200))
+    z = statistics.median(cpu_timed(zoom, repeats * 200))
     print("| part | p50 CPU ms |\n| --- | --- |")
     print(f"| default-preset query (decode, DISK 512, MobileNetV2, verify 5) | {q:.2f} |")
     print(f"| decision today (threshold + verified) | {o:.4f} |")
     print(f"| decision issue 25 (evidence + loop_probability + status) | {n:.4f} |")
     print(f"| added by the decision | {n - o:.4f} ({100 * (n - o) / q:.3f} % of the query) |")
+    print(f"| zoom of 5 candidates + its re-rank | {z:.4f} ({100 * z / q:.3f} % of the query) |")
 
 
 def main() -> None:

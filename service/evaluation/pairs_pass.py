@@ -47,6 +47,7 @@ from service.evaluation.adaptation_pass import partner_of
 from service.evaluation.datasets import Dataset
 from service.evaluation.protocol import MethodResult
 from service.evaluation.retraining_pass import _subset, query_submaps, revisit_shots
+from service.evaluation.score_honesty import impostor_exceedance
 from service.evaluation.served_pass import (
     PARTS,
     QUERY_SUBMAP,
@@ -90,6 +91,8 @@ class ObservedPairs:
             the robot's sequence decided, ``operator``: labelled).
         drive_before, drive_after: ``stream`` only, the test queries observed in order as a
             drive (default sequence), by the starting and by the job's version.
+        honesty_before, honesty_after: the share of the test queries' impostor pairs that
+            score at least 2 and 3 under each version (:mod:`score_honesty`).
     """
 
     shots: int
@@ -105,6 +108,8 @@ class ObservedPairs:
     sources: dict[str, int] = field(default_factory=dict)
     drive_before: ServedAnswers | None = None
     drive_after: ServedAnswers | None = None
+    honesty_before: dict[str, float] = field(default_factory=dict)
+    honesty_after: dict[str, float] = field(default_factory=dict)
 
     @property
     def activated(self) -> bool:
@@ -151,6 +156,12 @@ def observed_pairs_runs(
             found = repo.get_atlas(session, name=atlas)
             atlas_id, starting = found.id, repo.active_model_version(session, atlas_id=found.id)
             starting_version = starting.version
+        tested = [queries[q] for q in test]
+        test_positives = [dataset.queries[q].positives for q in test]
+        honesty_before = impostor_exceedance(
+            service, atlas_id, tested, test_positives, frame_to_reference
+        )
+        honesty_after: dict[str, float] = {}
         submap_name = {
             int(q): STREAM_SUBMAP if source == "stream" else f"revisit-{int(revisited[q]):05d}"
             for q in observed
@@ -197,7 +208,6 @@ def observed_pairs_runs(
             # frames go once the job has learned from them (an asking robot would also bring
             # its own trajectory into the decision)
             _delete(service, atlas, submaps)
-            tested = [queries[q] for q in test]
             after = drive_before = drive_after = None
             if source == "stream":  # the rest of the drive, with the starting version
                 service.activate_version(atlas, starting_version)
@@ -208,6 +218,9 @@ def observed_pairs_runs(
                 service.activate_version(atlas, job["version"])
                 service.catch_up()
                 after = served_answers(service, tested, frame_to_reference, k, atlas, extractor)
+                honesty_after = impostor_exceedance(
+                    service, atlas_id, tested, test_positives, frame_to_reference
+                )
                 if source == "stream":
                     drive_after = _drive(service, tested, frame_to_reference, k, atlas, extractor)
         finally:  # the atlas as it was: the starting version, no observed frame or pair
@@ -229,6 +242,8 @@ def observed_pairs_runs(
                 sources,
                 drive_before,
                 drive_after,
+                honesty_before,
+                honesty_after,
             )
         )
     return runs
@@ -344,6 +359,8 @@ def observed_pairs_rows(
             for side, method in (*methods.items(), ("served", served))
             for key, value in _figures(method).items()
         },
+        **{f"impostors_{key}_before": value for key, value in run.honesty_before.items()},
+        **{f"impostors_{key}_after": value for key, value in run.honesty_after.items()},
         **{
             f"loops_{side}": methods[side].details["operating_point"]
             for side in ("drive-before", "drive-after")

@@ -121,8 +121,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "| pairs from | K | observed (answers) | pairs recorded (right) | adapt job | test queries "
         "| R@1 before → after (served) | R@100%P before → after (served) "
         "| wrong-match score excess median before → after (served) "
-        "| right-match score excess median before → after (served) |",
-        "|" + " --- |" * 10,
+        "| right-match score excess median before → after (served) "
+        "| impostor pairs scoring ≥ 2 / ≥ 3 before → after |",
+        "|" + " --- |" * 11,
     ]
 
     def arrow(key: str, row: dict[str, Any]) -> str:
@@ -139,7 +140,7 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {job['status']}: {job['message']} "
             f"| {row['test_queries']} | {arrow('recall@1', row)} "
             f"| {arrow('recall_at_100_precision', row)} | {arrow('wrong_score_median', row)} "
-            f"| {arrow('right_score_median', row)} |"
+            f"| {arrow('right_score_median', row)} | {_honesty(row)} |"
         )
     lines += [
         "",
@@ -155,9 +156,27 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "protocol as served). Pairs from `stream`: K is a percent; the first K % of the "
         "queries, in order, are observed as one robot's drive (its sequence on), every closure "
         "observe kept (verified, or a loop of its sequence) is a pair, and the test queries are "
-        "the rest of the drive, places the job saw no pair of.",
+        "the rest of the drive, places the job saw no pair of. Impostor pairs: every test "
+        "query with every map frame that is not a right reference; the share scoring at least 2 "
+        "(3) should be about 1 % (0.1 %) if the version's score means what it says "
+        "(`service/evaluation/score_honesty.py`).",
     ]
     return "\n".join(lines)
+
+
+def _honesty(row: dict[str, Any]) -> str:
+    """ "1.2 % / 0.1 % → 0.8 % / 0.0 % (of 19,000)": the test queries' impostor pairs scoring
+    at least 2 and 3, before and after; "-" without an impostor model."""
+
+    def shares(side: str) -> str:
+        at_2, at_3 = row.get(f"impostors_at_2_{side}"), row.get(f"impostors_at_3_{side}")
+        if at_2 is None or at_3 is None:
+            return "-"
+        return f"{100 * at_2:.1f} % / {100 * at_3:.2f} %"
+
+    pairs = row.get("impostors_impostor_pairs_before")
+    count = f" (of {int(pairs):,})" if pairs is not None else ""
+    return f"{shares('before')} → {shares('after')}{count}"
 
 
 def _by_source(row: dict[str, Any]) -> str:

@@ -20,6 +20,7 @@ from service.evaluation.pairs_pass import (
     observed_pairs_runs,
 )
 from service.evaluation.protocol import assign_submaps
+from service.evaluation.report import observed_pairs_table
 from service.evaluation.runner import EvalConfig, run_evaluation
 from service.evaluation.served_pass import PARTS, ServedAnswers
 from service.evaluation.service_pass import ATLAS, run_service_pass
@@ -194,6 +195,15 @@ def test_the_rows_report_before_after_and_served(protocol_run) -> None:  # type:
     for key in ("recall@1", "recall_at_100_precision", "wrong_score_median", "right_score_median"):
         assert row[f"{key}_served"] == row[f"{key}_{side}"] or np.isnan(row[f"{key}_served"])
     assert 0.0 <= row["recall@1_after"] <= 1.0 and 0.0 <= row["recall@1_before"] <= 1.0
+    # the score's honesty: every test query with every map frame that is not a right one
+    assert many.honesty_before, "the pass's atlas is calibrated: its score can be checked"
+    impostors = sum(len(dataset.references) - len(dataset.queries[q].positives) for q in many.test)
+    assert row["impostors_impostor_pairs_before"] == impostors
+    for side in ("before", "after") if many.after is not None else ("before",):
+        at_2, at_3 = row[f"impostors_at_2_{side}"], row[f"impostors_at_3_{side}"]
+        assert 0.0 <= at_3 <= at_2 <= 1.0
+    table = observed_pairs_table([row])
+    assert f"(of {impostors:,})" in table and "impostor pairs scoring ≥ 2 / ≥ 3" in table
 
 
 @pytest.mark.slow

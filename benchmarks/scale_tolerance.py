@@ -49,10 +49,11 @@ def number(value: float) -> float | None:
 
 def answer(
     rows: list[list[float]], tolerance: float, frames: int, min_inliers: int
-) -> tuple[int, float]:
-    """The re-ranked best reference (-1: none) and its loop probability (0: none)."""
+) -> tuple[int, float, bool]:
+    """The re-ranked best reference (-1: none), its loop probability (0: none) and whether
+    the decision calls it a loop."""
     if not rows:
-        return -1, 0.0
+        return -1, 0.0, False
     inliers = [None if math.isnan(r[INLIERS]) else int(r[INLIERS]) for r in rows]
     zooms = [number(r[ZOOM]) for r in rows]
     order = rerank([r[SIMILARITY] for r in rows], inliers, zooms, scale_tolerance=tolerance)
@@ -74,19 +75,17 @@ def answer(
     )
     decision = decide_loop(evidence, min_inliers=min_inliers)
     if decision.loop_probability is None:
-        return int(best_row[REFERENCE]), 0.0
-    # unrounded, as the served row sweeps it; a loop needs the verified minimum besides
-    swept = probability(decision.parts)
-    return int(best_row[REFERENCE]), swept if decision.passed or swept < 0.98 else 0.979
+        return int(best_row[REFERENCE]), 0.0, False
+    # unrounded, as the served row sweeps it (served_pass.swept_probability)
+    return int(best_row[REFERENCE]), probability(decision.parts), decision.passed
 
 
 def figures(
-    best: np.ndarray, probability: np.ndarray, positives: list[frozenset[int]]
+    best: np.ndarray, probability: np.ndarray, loops: np.ndarray, positives: list[frozenset[int]]
 ) -> dict[str, float]:
     right = np.array([int(b) in p for b, p in zip(best, positives, strict=True)])
     answerable = sum(1 for p in positives if p)
     curve = precision_recall(probability, right, answerable)
-    loops = probability >= 0.98
     return {
         "r_at_1": round(float(right.sum() / max(answerable, 1)), 3),
         "r_at_100p": round(curve.recall_at_full_precision, 3),
@@ -117,8 +116,9 @@ def main() -> None:
         answers = [answer(rows, tolerance, frames, min_inliers) for rows in candidates]
         best = np.array([a[0] for a in answers])
         probability = np.array([a[1] for a in answers])
+        loops = np.array([a[2] for a in answers], bool)
         result[str(tolerance)] = {
-            which: figures(best[sl], probability[sl], positives[sl])
+            which: figures(best[sl], probability[sl], loops[sl], positives[sl])
             for which, sl in (("first half", slice(0, half)), ("second half", slice(half, None)))
         }
         print(tolerance, json.dumps(result[str(tolerance)]))

@@ -16,7 +16,8 @@ import numpy as np
 
 # How much the re-rank trusts the inliers' zoom (:func:`support`): chosen on the first half of
 # gardenspoint_cohog200's queries (DISK at 256 px, MNN; benchmarks/scale_tolerance.py, figures
-# in benchmarks/RESULTS.md), where 0.3-0.4 gave the best R@1 and R@100%P of the served decision.
+# in benchmarks/RESULTS.md), where 0.1-0.35 gave the best R@1 and R@100%P of the served
+# decision (within one query); 0.35 is the plateau's gentlest end.
 DEFAULT_SCALE_TOLERANCE = 0.35
 # Fewest inliers whose spread says anything about the viewpoint (RANSAC's own minimum).
 MIN_SCALE_POINTS = 8

@@ -9,7 +9,7 @@ from service.app.results import Candidate, SequenceAnswer
 from service.app.sequences import Verdict
 from service.ml.decision import CANDIDATE_PROBABILITY, Decision, Evidence
 from service.ml.sequences import PlaceStatus
-from service.ml.viewpoint import support
+from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, support
 
 # Up to this many frames an atlas is small: every frame the search returns is verified, since
 # its global ranking is the least reliable (no calibration yet) and verifying all costs little.
@@ -39,7 +39,7 @@ def answer_evidence(
     candidates: list[Candidate],
     frames: int,
     sequence: SequenceAnswer | None,
-    scale_tolerance: float = 0.0,
+    scale_tolerance: float = DEFAULT_SCALE_TOLERANCE,
 ) -> Evidence | None:
     """The decision's evidence for the best candidate (``candidates`` in their final order);
     None without candidates. The rival's inliers are counted in the best's terms: both

@@ -107,7 +107,7 @@ def test_the_rival_counts_in_the_best_candidates_terms_when_zoom_weighs() -> Non
 
     best = Candidate(13, "s", "r", 0.9, 40, None, 0.9, False, scale=1.0)
     rival = Candidate(10, "s", "r", 0.9, 50, None, 0.9, True, scale=0.7)
-    plain = answer_evidence([best, rival], 10, None)
+    plain = answer_evidence([best, rival], 10, None, scale_tolerance=0.0)
     assert plain is not None and plain.rival_inliers == 50
     weighed = answer_evidence([best, rival], 10, None, scale_tolerance=0.5)
     assert weighed is not None

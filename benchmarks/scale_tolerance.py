@@ -8,10 +8,11 @@ order). Choose on the FIRST half of a development set, read the second half as h
     python benchmarks/scale_tolerance.py RUN/report.json ../shared/data/gardenspoint_cohog200 \\
         --tolerance 2 --tolerances 0,1,0.7,0.5,0.35,0.25
 
-Anonymous queries only (the served row of a run without ``--sequence``): the decision's parts
+Anonymous queries only (the report's ``loopnet-<extractor>-served`` row): the decision's parts
 are the inliers, the inlier ratio, the rival (references are one robot's frames in route
 order, so a rival is a reference more than ``RIVAL_GAP`` away) and the calibrated score. The
-re-rank and the rival's weighing are the service's own functions. Only the candidates the
+re-rank, the evidence and the decision are the service's own functions (``rerank``,
+``answer_evidence``, ``decide_loop``). Only the candidates the
 service verified are re-ordered; a query whose top 5 held no right frame stays wrong.
 Nothing here is a service path: it is the record of a choice.
 """
@@ -25,22 +26,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from served_halves import served_row  # beside this script: the same report's served row
 
-from service.app.decision import RIVAL_GAP
+from service.app.decision import answer_evidence
+from service.app.results import Candidate
 from service.evaluation.datasets import load_dataset
 from service.evaluation.metrics import precision_recall
-from service.ml.decision import Evidence, decide_loop, probability
+from service.ml.decision import decide_loop, probability
 from service.ml.verification import rerank
-from service.ml.viewpoint import support
 
 REFERENCE, SIMILARITY, SCORE, INLIERS, RATIO, ZOOM = range(6)
-
-
-def served_row(report: dict[str, Any]) -> dict[str, Any]:
-    rows = [m for m in report["methods"] if m["name"].endswith("-served")]
-    if not rows:
-        raise SystemExit("no served row in the report (run loopnet eval without --no-served)")
-    return rows[0]
+MAP = "map"  # the one robot and submap every reference belongs to
 
 
 def number(value: float) -> float | None:
@@ -51,33 +47,37 @@ def answer(
     rows: list[list[float]], tolerance: float, frames: int, min_inliers: int
 ) -> tuple[int, float, bool]:
     """The re-ranked best reference (-1: none), its loop probability (0: none) and whether
-    the decision calls it a loop."""
+    the decision calls it a loop. The candidates are one robot's frames in route order (a
+    frame's id is its reference index), so the service's rival rule applies as it is."""
     if not rows:
         return -1, 0.0, False
-    inliers = [None if math.isnan(r[INLIERS]) else int(r[INLIERS]) for r in rows]
-    zooms = [number(r[ZOOM]) for r in rows]
-    order = rerank([r[SIMILARITY] for r in rows], inliers, zooms, scale_tolerance=tolerance)
-    best = order[0]
-    best_row = rows[best]
-    per_inlier = support(1, zooms[best], tolerance)
-    rivals = [
-        support(inliers[i], zooms[i], tolerance) / per_inlier
-        for i in order[1:]
-        if inliers[i] is not None and abs(rows[i][REFERENCE] - best_row[REFERENCE]) > RIVAL_GAP
+    candidates = [
+        Candidate(
+            int(r[REFERENCE]),
+            MAP,
+            MAP,
+            r[SIMILARITY],
+            None if math.isnan(r[INLIERS]) else int(r[INLIERS]),
+            number(r[SCORE]),
+            number(r[RATIO]),
+            scale=number(r[ZOOM]),
+        )
+        for r in rows
     ]
-    score = number(best_row[SCORE])
-    evidence = Evidence(
-        inliers=inliers[best],
-        inlier_ratio=number(best_row[RATIO]),
-        rival_inliers=max(rivals) if rivals else None,
-        score_excess=score - math.log10(frames) if score is not None else None,
-        frames=frames,
+    order = rerank(
+        [c.similarity for c in candidates],
+        [c.inliers for c in candidates],
+        [c.scale for c in candidates],
+        scale_tolerance=tolerance,
     )
+    ordered = [candidates[i] for i in order]
+    evidence = answer_evidence(ordered, frames, None, tolerance)
     decision = decide_loop(evidence, min_inliers=min_inliers)
+    best = ordered[0].frame_id
     if decision.loop_probability is None:
-        return int(best_row[REFERENCE]), 0.0, False
+        return best, 0.0, False
     # unrounded, as the served row sweeps it (served_pass.swept_probability)
-    return int(best_row[REFERENCE]), probability(decision.parts), decision.passed
+    return best, probability(decision.parts), decision.passed
 
 
 def figures(

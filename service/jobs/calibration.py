@@ -152,7 +152,9 @@ def calibrate_min_inliers(
     inliers above them (see :mod:`service.ml.inlier_threshold`); ``stays``: the new version's
     scores, so a robot's frames of one stop are not each other's impostors."""
     order = np.asarray(inputs.order)
-    pairs = hard_impostors(embeddings, inputs.robots, order, stays=stays)
+    pairs = hard_impostors(
+        embeddings, inputs.robots, order, stays=stays, same_place=inputs.same_place
+    )
     halfway = midpoints(inputs.robots, order, pairs)
     wanted = sorted(
         {int(order[i]) for pair in pairs for i in pair} | {int(order[m]) for m in halfway if m >= 0}

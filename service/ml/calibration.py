@@ -342,13 +342,22 @@ def _impostor_probe(
     such pairs (a tiny atlas): in-sample pairs of the ``seen`` (calibrated) branches."""
     config, order = probe.config, np.asarray(inputs.order)
     first, second = impostor_pairs(
-        inputs.robots, order, pairs=config.impostor_pairs, seed=config.seed, first_from=held
+        inputs.robots,
+        order,
+        pairs=config.impostor_pairs,
+        seed=config.seed,
+        first_from=held,
+        same_place=inputs.same_place,
     )
     if len(first) >= MIN_PAIRS:
         local, global_ = probe.branches_of_raw(local_raw, has_local, inputs.global_vectors)
         return ImpostorProbe(local, global_, first, second, in_sample=False, held=held)
     first, second = impostor_pairs(
-        inputs.robots, order, pairs=config.impostor_pairs, seed=config.seed
+        inputs.robots,
+        order,
+        pairs=config.impostor_pairs,
+        seed=config.seed,
+        same_place=inputs.same_place,
     )
     return ImpostorProbe(*seen, first, second, in_sample=True)
 

@@ -81,6 +81,8 @@ class CalibrationInputs:
         global_vectors: ``n x C`` backbone vectors R.
         robots: per frame, the robot that recorded it.
         order: per frame, its place in its robot's sequence (frame id or timestamp).
+        same_place: ``m x 2`` row indices of frames known to show one place (the atlas's
+            revisit pairs), never sampled as impostors; empty: none known.
     """
 
     descriptors: Sequence[np.ndarray]
@@ -88,6 +90,7 @@ class CalibrationInputs:
     global_vectors: np.ndarray
     robots: Sequence[str]
     order: np.ndarray
+    same_place: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
     def __post_init__(self) -> None:
         n = len(self.global_vectors)

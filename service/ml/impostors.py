@@ -1,10 +1,12 @@
 """A similarity score with a fixed meaning: how rarely two different places look this alike.
 
 At calibration an atlas's own *impostor* pairs are sampled: stored frames that cannot be the
-same place without any label, namely frames of one robot far apart in its sequence (frames of
-different robots and the odd true loop closure among far-apart frames are rare enough to
-leave the estimate's tail almost untouched). Their cosines give the impostor distribution, and
-a cosine ``c`` maps to
+same place without any label, namely frames of one robot far apart in its sequence, and frames
+of different robots except near the places the fleet verified as revisits (its revisit pairs).
+A second robot driving the first's route makes a few percent of the cross-robot pairs true
+matches, whose cosines would fill the very tail the score is read from; the odd unrecorded
+loop closure left among far-apart frames is rare enough to leave it almost untouched. The
+pairs' cosines give the impostor distribution, and a cosine ``c`` maps to
 
     score(c) = -log10 P(impostor cosine >= c)
 
@@ -53,13 +55,17 @@ def impostor_pairs(
     min_gap: int | None = None,
     seed: int = 0,
     first_from: np.ndarray | None = None,
+    same_place: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)`` of frames that are not the same place by sequence alone.
 
     ``order`` ranks each frame within its robot's sequence (frame ids or timestamps). Pairs of
     one robot need at least ``min_gap`` frames between them (default: a twentieth of the
-    robot's frames, at least 5); pairs of different robots are kept. With ``first_from`` (a
-    mask), every pair's first frame is inside the mask and its second outside.
+    robot's frames, at least 5); pairs of different robots are kept, except where
+    ``same_place`` (``m x 2`` indices of frames known to show one place: the fleet's revisit
+    pairs) says otherwise: a pair whose frame lies within that gap of a known partner of the
+    other is the same place. With ``first_from`` (a mask), every pair's first frame is inside
+    the mask and its second outside.
     """
     n = len(robots)
     if n < 2:
@@ -77,11 +83,47 @@ def impostor_pairs(
         first = inside[rng.integers(0, len(inside), pairs * 2)]
         second = outside[rng.integers(0, len(outside), pairs * 2)]
     keep = (codes[first] != codes[second]) | (np.abs(rank[first] - rank[second]) >= gap[first])
+    if same_place is not None and len(same_place):
+        keep &= ~_near_partner(first, second, codes, rank, gap, same_place)
     first, second = _distinct(first[keep], second[keep], n)
     if len(first) == 0:
         raise ValueError("no frame pairs are far enough apart to serve as impostors")
     order_kept = rng.permutation(len(first))[:pairs]
     return first[order_kept], second[order_kept]
+
+
+def _near_partner(
+    first: np.ndarray,
+    second: np.ndarray,
+    codes: np.ndarray,
+    rank: np.ndarray,
+    gap: np.ndarray,
+    same_place: np.ndarray,
+) -> np.ndarray:
+    """Per pair: whether one frame has a known partner (``same_place``) of the other's robot
+    less than that robot's gap from the other along its sequence. Vectorised: each link
+    becomes a sortable key (frame, partner's robot, partner's rank), and a pair asks whether
+    a key falls in its frame's window."""
+    links = np.asarray(same_place, np.int64).reshape(-1, 2)
+    source = np.concatenate([links[:, 0], links[:, 1]])
+    partner = np.concatenate([links[:, 1], links[:, 0]])
+    robots = int(codes.max()) + 1
+    span = 4 * (len(codes) + 1)  # rank +- gap, shifted positive, never reaches the next key
+
+    def key(frame: np.ndarray, robot: np.ndarray, position: np.ndarray) -> np.ndarray:
+        return np.asarray((frame * robots + robot) * span + position + 2 * (len(codes) + 1))
+
+    known = np.sort(key(source, codes[partner], rank[partner]))
+
+    def near(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        low = key(a, codes[b], rank[b] - gap[b] + 1)
+        high = key(a, codes[b], rank[b] + gap[b] - 1)
+        return np.asarray(
+            np.searchsorted(known, high, "right") > np.searchsorted(known, low, "left")
+        )
+
+    either: np.ndarray = near(first, second) | near(second, first)
+    return either
 
 
 def _distinct(first: np.ndarray, second: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

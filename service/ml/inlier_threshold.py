@@ -50,20 +50,28 @@ def hard_impostors(
     frames: int = 200,
     seed: int = 0,
     stays: StayRule | None = None,
+    same_place: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
     """``(i, j)``: for up to ``frames`` sampled frames ``i``, the most similar frame ``j`` of
     another robot, or of the same robot at least a twentieth of its frames (5 or more) away
     and outside ``i``'s stay (with ``stays``: a robot standing still for longer than that gap
     shows one place in all of it, and its own frames of the stop are no impostors; without a
-    calibrated score to read stays by, only the gap applies)."""
+    calibrated score to read stays by, only the gap applies). ``same_place``: ``m x 2``
+    frames known to show one place (the fleet's revisit pairs): another robot's frames
+    within the gap of ``i``'s known partners are its place, not its impostors (in a fleet
+    the most similar frame of another robot is most often the true revisit)."""
     n = len(embeddings)
     codes, rank, gap = sequence_positions(robots, np.asarray(order))
+    links = np.zeros((0, 2), np.int64) if same_place is None else np.asarray(same_place)
+    links = np.concatenate([links, links[:, ::-1]]).reshape(-1, 2)
     rng = np.random.default_rng(seed)
     chosen = np.sort(rng.permutation(n)[:frames])
     pairs = []
     for i in chosen:
         similarity = embeddings @ embeddings[i]
         same_place = (codes == codes[i]) & (np.abs(rank - rank[i]) < gap[i])
+        for partner in links[links[:, 0] == i, 1]:
+            same_place |= (codes == codes[partner]) & (np.abs(rank - rank[partner]) < gap)
         if stays is not None:
             same_place[_stay_both_ways(stays, embeddings, codes, rank, int(i))] = True
         similarity[same_place] = -np.inf

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
-from service.storage.models import Frame, FrameFeatureRow
+from service.storage.models import Frame, FrameFeatureRow, RevisitPair
 
 
 def global_vector_of(stored: bytes, dim: int) -> np.ndarray:
@@ -163,6 +163,7 @@ def load_calibration_inputs(session: Session, atlas_id: int) -> CalibrationInput
     """An atlas's stored descriptors, scores, backbone vectors, robots and frame order: what a
     calibration is fitted on (descriptors stay float16 until aggregated)."""
     batches = list(iter_stored_descriptors(session, atlas_id))
+    ids = np.concatenate([b.ids for b in batches]) if batches else np.zeros(0, np.int64)
     return CalibrationInputs(
         descriptors=[d for b in batches for d in b.descriptors],
         scores=[s for b in batches for s in b.scores],
@@ -170,8 +171,23 @@ def load_calibration_inputs(session: Session, atlas_id: int) -> CalibrationInput
         if batches
         else np.zeros((0, 0), np.float32),
         robots=[r for b in batches for r in b.robots],
-        order=np.concatenate([b.ids for b in batches]) if batches else np.zeros(0, np.int64),
+        order=ids,
+        same_place=known_same_place(session, atlas_id, ids),
     )
+
+
+def known_same_place(session: Session, atlas_id: int, ids: np.ndarray) -> np.ndarray:
+    """The atlas's revisit pairs as ``m x 2`` positions in ``ids`` (pairs of a frame not
+    among them are left out): frames the fleet verified, or an operator labelled, as one
+    place, which a calibration must not take for impostors."""
+    rows = session.execute(
+        select(RevisitPair.frame_id, RevisitPair.other_frame_id).where(
+            RevisitPair.atlas_id == atlas_id
+        )
+    ).all()
+    position = {int(frame_id): i for i, frame_id in enumerate(ids)}
+    pairs = [(position[a], position[b]) for a, b in rows if a in position and b in position]
+    return np.array(pairs, np.int64).reshape(-1, 2)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from service.jobs.retraining import JobRunner
 from service.storage import jobs
 from service.storage import repository as repo
 from service.storage.db import transaction
+from service.storage.feature_store import load_calibration_inputs
 from tests.api.helpers import create_atlas
 from tests.conftest import encode, make_settings, wait_ready
 from tests.jobs.test_retraining_jobs import (
@@ -115,6 +116,24 @@ def test_observed_pairs_train_an_adaptation_through_the_worker(
         np.array([p["id"] for p in pairs]), versions[1]["config"]["training"][TRAINED_PAIRS]
     )
     assert learned is not None and int(learned.sum()) == metrics["training_pairs"]
+
+
+def test_a_calibration_takes_the_atlas_revisit_pairs_for_one_place(
+    app_client: TestClient,
+) -> None:
+    """What a calibration (and an adaptation's refit impostor model) reads back: every pair
+    observe kept, as positions of its two frames among the inputs, so r2's frames of a place
+    r1 mapped are never sampled as that place's impostors."""
+    map_and_revisit(app_client)
+    service = app_client.app.state.runtime.service  # type: ignore[attr-defined]
+    pairs = app_client.get("/v1/atlases/campus/pairs", params={"limit": 100}).json()
+    with service.sessions() as session:
+        atlas = repo.get_atlas(session, name="campus")
+        inputs = load_calibration_inputs(session, atlas.id)
+    ids = np.asarray(inputs.order)
+    known = {(int(ids[a]), int(ids[b])) for a, b in inputs.same_place}
+    assert known == {(p["frame_id"], p["other_frame_id"]) for p in pairs}
+    assert len(known) == PLACES
 
 
 def test_a_versions_training_pairs_are_kept_as_ranges_of_ids() -> None:

@@ -206,6 +206,28 @@ def test_impostor_pairs_skip_neighbours_of_one_robot() -> None:
         impostor_pairs(["a"] * 5, np.arange(5), min_gap=10)
 
 
+def test_impostor_pairs_leave_out_the_places_of_known_revisits() -> None:
+    """Robot b drives robot a's route again (frame i of b is frame i of a): its frames near
+    a known revisit pair's are that place, not impostors, whichever side the pair names."""
+    robots = ["a"] * 100 + ["b"] * 100
+    order = np.concatenate([np.arange(100), np.arange(100)])
+    revisits = np.array([[10, 110], [160, 60]])  # a10 ~ b10, b60 ~ a60
+
+    def near_revisit(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        pairs = np.stack([first, second], 1)
+        pairs = np.concatenate([pairs, pairs[:, ::-1]])
+        a, b = pairs[:, 0], pairs[:, 1]
+        return ((a == 10) & (np.abs(b - 110) < 10)) | ((a == 160) & (np.abs(b - 60) < 10))
+
+    plain = impostor_pairs(robots, order, pairs=20_000, min_gap=10, seed=1)
+    assert near_revisit(*plain).any()
+    first, second = impostor_pairs(
+        robots, order, pairs=20_000, min_gap=10, seed=1, same_place=revisits
+    )
+    assert not near_revisit(first, second).any()
+    assert len(first) > 0.99 * len(plain[0])  # only those pairs are left out
+
+
 def test_impostor_score_is_the_surprise_of_a_cosine() -> None:
     cosines = np.random.default_rng(0).normal(0.2, 0.1, size=100_000)
     model = ImpostorModel.fit(cosines)

@@ -29,6 +29,17 @@ def test_hard_impostors_are_the_most_similar_frames_of_other_places() -> None:
         assert abs(i - j) == 20  # but its look-alike from the other lap
     other_robot = hard_impostors(embeddings, ["a"] * 20 + ["b"] * 20, np.arange(40), frames=40)
     assert all(abs(i - j) == 20 for i, j in other_robot)  # another robot's frame may be close
+    # unless the fleet verified it as the same place: then the place's neighbourhood is left
+    # out and the hard impostor is a frame of another place
+    known = np.array([[3, 23]])
+    revisited = dict(
+        hard_impostors(
+            embeddings, ["a"] * 20 + ["b"] * 20, np.arange(40), frames=40, same_place=known
+        )
+    )
+    assert revisited[3] not in range(20, 28)  # b's frames within 5 of the revisit
+    assert revisited[23] not in range(0, 8)
+    assert revisited[4] == 24  # frames without a known revisit keep their look-alike
 
 
 def test_the_minimum_sits_just_above_the_impostors() -> None:

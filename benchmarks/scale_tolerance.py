@@ -10,7 +10,8 @@ order). Choose on the FIRST half of a development set, read the second half as h
 
 Anonymous queries only (the report's ``loopnet-<extractor>-served`` row): the decision's parts
 are the inliers, the inlier ratio, the rival (references are one robot's frames in route
-order, so a rival is a reference more than ``RIVAL_GAP`` away) and the calibrated score. The
+order, so a rival is a reference more than ``--rival-gap`` away: 2, the service's when the
+tolerance was chosen, so the result files reproduce) and the calibrated score. The
 re-rank, the evidence and the decision are the service's own functions (``rerank``,
 ``answer_evidence``, ``decide_loop``). Only the candidates the
 service verified are re-ordered; a query whose top 5 held no right frame stays wrong.
@@ -44,7 +45,7 @@ def number(value: float) -> float | None:
 
 
 def answer(
-    rows: list[list[float]], tolerance: float, frames: int, min_inliers: int
+    rows: list[list[float]], tolerance: float, frames: int, min_inliers: int, rival_gap: int
 ) -> tuple[int, float, bool]:
     """The re-ranked best reference (-1: none), its loop probability (0: none) and whether
     the decision calls it a loop. The candidates are one robot's frames in route order (a
@@ -71,7 +72,7 @@ def answer(
         scale_tolerance=tolerance,
     )
     ordered = [candidates[i] for i in order]
-    evidence = answer_evidence(ordered, frames, None, tolerance)
+    evidence = answer_evidence(ordered, frames, None, tolerance, rival_gap)
     decision = decide_loop(evidence, min_inliers=min_inliers)
     best = ordered[0].frame_id
     if decision.loop_probability is None:
@@ -100,6 +101,7 @@ def main() -> None:
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--tolerance", type=int, default=1, help="the run's frame tolerance")
     parser.add_argument("--tolerances", default="0,1,0.7,0.5,0.35,0.25")
+    parser.add_argument("--rival-gap", type=int, default=2, help="frames; 2 as at the choice")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     row = served_row(json.loads(args.report.read_text()))
@@ -113,7 +115,9 @@ def main() -> None:
     half = len(positives) // 2
     result: dict[str, Any] = {}
     for tolerance in (float(t) for t in args.tolerances.split(",")):
-        answers = [answer(rows, tolerance, frames, min_inliers) for rows in candidates]
+        answers = [
+            answer(rows, tolerance, frames, min_inliers, args.rival_gap) for rows in candidates
+        ]
         best = np.array([a[0] for a in answers])
         probability = np.array([a[1] for a in answers])
         loops = np.array([a[2] for a in answers], bool)

@@ -10,6 +10,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings
 
+from service.ml.decision import DEFAULT_RIVAL_GAP
 from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE
 
 
@@ -134,6 +135,14 @@ class DecisionSettings(BaseSettings):
         "margin) from which the best match is a loop closure. 0.98 gave no false loop on the "
         "development sets (benchmarks/RESULTS.md, issue 25); lower it for recall, raise it for "
         "safety.",
+    )
+    rival_gap_frames: int = Field(
+        DEFAULT_RIVAL_GAP,
+        ge=0,
+        description="Frames of one robot at most this many apart along its route are one "
+        "stretch of it: the decision's rival part (the best verified candidate of another "
+        "place) looks beyond them. Set it to the frames a robot sends while it moves a few "
+        "metres; another robot's frame is another place only in another submap.",
     )
     matcher: str = Field(
         "mnn",

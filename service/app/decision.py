@@ -7,15 +7,13 @@ import math
 
 from service.app.results import Candidate, SequenceAnswer
 from service.app.sequences import Verdict
-from service.ml.decision import CANDIDATE_PROBABILITY, Decision, Evidence
+from service.ml.decision import CANDIDATE_PROBABILITY, DEFAULT_RIVAL_GAP, Decision, Evidence
 from service.ml.sequences import PlaceStatus
 from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, support
 
 # Up to this many frames an atlas is small: every frame the search returns is verified, since
 # its global ranking is the least reliable (no calibration yet) and verifying all costs little.
 SMALL_ATLAS_FRAMES = 32
-# Frames of one robot further apart than this are different places for the rival part.
-RIVAL_GAP = 2
 
 
 def verified_count(top: int, frames: int) -> int:
@@ -25,14 +23,36 @@ def verified_count(top: int, frames: int) -> int:
     return max(top, frames) if frames <= SMALL_ATLAS_FRAMES else top
 
 
-def is_rival(best: Candidate, other: Candidate) -> bool:
+def is_rival(best: Candidate, other: Candidate, gap: int = DEFAULT_RIVAL_GAP) -> bool:
     """Whether ``other`` is another place than ``best``: a frame of the same robot more than
-    ``RIVAL_GAP`` frames away along its trajectory (ids grow with insertion), or a frame of
+    ``gap`` frames away along its trajectory (ids grow with insertion), or a frame of
     another robot in another submap. Another robot's frame in the same submap may well show
     the same place, so it never counts against the match."""
     if other.robot_id == best.robot_id:
-        return abs(other.frame_id - best.frame_id) > RIVAL_GAP
+        return abs(other.frame_id - best.frame_id) > gap
     return other.submap != best.submap
+
+
+def rival_reserve(
+    candidates: list[Candidate], checked: int, gap: int = DEFAULT_RIVAL_GAP
+) -> Candidate | None:
+    """The candidate to verify when none of the first ``checked`` turns out to be another
+    place than the best: the most similar one after them that is a rival of every one of
+    them (so of whichever the re-rank puts first). None when the search found no such frame."""
+    head = candidates[:checked]
+    for candidate in candidates[checked:]:
+        if all(is_rival(c, candidate, gap) for c in head):
+            return candidate
+    return None
+
+
+def has_verified_rival(candidates: list[Candidate], gap: int = DEFAULT_RIVAL_GAP) -> bool:
+    """Whether a verified candidate of another place than the best (``candidates`` in their
+    final order) stands beside it: without one the decision has no rival to weigh."""
+    if not candidates:
+        return False
+    best = candidates[0]
+    return any(c.inliers is not None and is_rival(best, c, gap) for c in candidates[1:])
 
 
 def answer_evidence(
@@ -40,6 +60,7 @@ def answer_evidence(
     frames: int,
     sequence: SequenceAnswer | None,
     scale_tolerance: float = DEFAULT_SCALE_TOLERANCE,
+    rival_gap: int = DEFAULT_RIVAL_GAP,
 ) -> Evidence | None:
     """The decision's evidence for the best candidate (``candidates`` in their final order);
     None without candidates. The rival's inliers are counted in the best's terms: both
@@ -51,7 +72,7 @@ def answer_evidence(
     rivals = [
         support(c.inliers, c.scale, scale_tolerance) / per_inlier
         for c in candidates[1:]
-        if c.inliers is not None and is_rival(best, c)
+        if c.inliers is not None and is_rival(best, c, rival_gap)
     ]
     score_excess = best.score - math.log10(max(frames, 1)) if best.score is not None else None
     return Evidence(

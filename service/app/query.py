@@ -13,7 +13,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.app.decision import answer_evidence, probable_candidate, verified_count
+from service.app.decision import (
+    answer_evidence,
+    has_verified_rival,
+    probable_candidate,
+    rival_reserve,
+    verified_count,
+)
 from service.app.filters import QueryFilter, Selection, resolve
 from service.app.ingest import FrameIngest
 from service.app.observe import Observations, with_extraction_timings
@@ -62,6 +68,7 @@ class Found:
     frames: dict[int, Frame]
     names: dict[int, str]
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
+    reserve: Candidate | None  # verified too when no checked candidate is another place
     evidence: RobotEvidence | None  # the robot's sequence and previous observations
     proposals: list[int]  # the search's best frames: what this frame proposes to sequences
     stay_frames: int  # the robot's current stay, left out of the search
@@ -181,32 +188,20 @@ class AtlasQueries(Observations):
         verifications: dict[int, Verification] = {}
         if self.verification.enabled and candidates:
             start = time.perf_counter()
+            view = View(features.local, features.image_size, intrinsics)
             checked = candidates[: verified_count(config.top, state.index.size)]
-            verifications = {
-                frame_id: replace(v, verified=v.inliers >= min_inliers)
-                for frame_id, v in self.verification.verify(
-                    View(features.local, features.image_size, intrinsics),
-                    [found.frames[c.frame_id] for c in checked],
-                    found.stored,
-                ).items()
-            }
-            for candidate in checked:
-                verified = verifications.get(candidate.frame_id)
-                if verified is not None:
-                    candidate.inliers = verified.inliers
-                    candidate.inlier_ratio = round(verified.inlier_ratio, 4)
-                    candidate.verified = verified.verified
-                    candidate.relative_pose = verified.relative_pose
-                    candidate.scale = (
-                        round(verified.scale, 4) if verified.scale is not None else None
-                    )
-            order = rerank(
-                [c.similarity for c in candidates],
-                [c.inliers for c in candidates],
-                [c.scale for c in candidates],
-                scale_tolerance=config.scale_tolerance,
-            )
-            candidates = [candidates[i] for i in order]
+            verifications = self._verify(view, checked, found, min_inliers)
+            candidates = self._reranked(candidates)
+            # the rival part needs another place verified beside the best: when the checked
+            # candidates all show one place, the most similar frame elsewhere is verified too
+            reserve = found.reserve
+            if (
+                reserve is not None
+                and candidates[0].inliers is not None
+                and not has_verified_rival(candidates, self.settings.rival_gap_frames)
+            ):
+                verifications.update(self._verify(view, [reserve], found, min_inliers))
+                candidates = self._reranked(candidates)
             timings["verification"] = (time.perf_counter() - start) * 1000.0
         if prediction is None:
             guess = SubmapGuess(
@@ -231,7 +226,11 @@ class AtlasQueries(Observations):
         sequence = found.evidence.sequence if found.evidence is not None else None
         decision = decide_loop(
             answer_evidence(
-                candidates, state.index.size, sequence, self.verification.config.scale_tolerance
+                candidates,
+                state.index.size,
+                sequence,
+                self.verification.config.scale_tolerance,
+                self.settings.rival_gap_frames,
             ),
             threshold=self.settings.loop_probability_min,
             verify=enabled,
@@ -283,6 +282,37 @@ class AtlasQueries(Observations):
             decision=decision,
             stay_frames=found.stay_frames,
         )
+
+    def _verify(
+        self, view: View, checked: list[Candidate], found: Found, min_inliers: int
+    ) -> dict[int, Verification]:
+        """Verify ``checked`` against the query's ``view`` and write what verification found
+        into each candidate; the verifications by frame id."""
+        verifications = {
+            frame_id: replace(v, verified=v.inliers >= min_inliers)
+            for frame_id, v in self.verification.verify(
+                view, [found.frames[c.frame_id] for c in checked], found.stored
+            ).items()
+        }
+        for candidate in checked:
+            verified = verifications.get(candidate.frame_id)
+            if verified is not None:
+                candidate.inliers = verified.inliers
+                candidate.inlier_ratio = round(verified.inlier_ratio, 4)
+                candidate.verified = verified.verified
+                candidate.relative_pose = verified.relative_pose
+                candidate.scale = round(verified.scale, 4) if verified.scale is not None else None
+        return verifications
+
+    def _reranked(self, candidates: list[Candidate]) -> list[Candidate]:
+        """``candidates`` in the order verification gives them (:func:`rerank`)."""
+        order = rerank(
+            [c.similarity for c in candidates],
+            [c.inliers for c in candidates],
+            [c.scale for c in candidates],
+            scale_tolerance=self.verification.config.scale_tolerance,
+        )
+        return [candidates[i] for i in order]
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
         """The setting when given, else the atlas calibration's (fitted for this matcher), else
@@ -339,11 +369,14 @@ class AtlasQueries(Observations):
             if (f := frames.get(h.frame_id)) is not None
         ]
         stored: dict[int, LocalFeatures] = {}
+        reserve = None
         if self.verification.enabled and candidates:
             checked = candidates[: verified_count(top, state.index.size)]
-            stored = load_local_features(session, [c.frame_id for c in checked])
+            reserve = rival_reserve(candidates, len(checked), self.settings.rival_gap_frames)
+            to_load = checked if reserve is None else [*checked, reserve]
+            stored = load_local_features(session, [c.frame_id for c in to_load])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
-        return Found(candidates, frames, names, stored, evidence, proposals, len(stay))
+        return Found(candidates, frames, names, stored, reserve, evidence, proposals, len(stay))
 
     def _stay(
         self,

@@ -35,6 +35,13 @@ from dataclasses import dataclass, field
 DEFAULT_LOOP_PROBABILITY = 0.98
 # Below this the answer is a new place; between it and the loop threshold, a candidate.
 CANDIDATE_PROBABILITY = 0.5
+# Frames of one robot at most this many apart along its route are one stretch of it, the same
+# place for the rival part; LOOPNET_RIVAL_GAP_FRAMES overrides it (service.app.decision).
+# Chosen on the first half of gardenspoint_cohog200 (R@100%P as served: 2 -> 0.46, 3 -> 0.51,
+# 4 -> 0.52, 5 -> 0.54, 7 and 10 -> 0.55; benchmarks/served_settings.py), the largest value
+# that keeps the README flow's ten far-apart keyframes apart (at 7 a right answer with 10
+# inliers lost its rival and became a new place); neutral on nordland_64x32.
+DEFAULT_RIVAL_GAP = 5
 
 # Logistic coefficients of each part (per unit of the part, after its centre is subtracted).
 INTERCEPT = 0.0

@@ -71,7 +71,7 @@ def test_small_atlases_verify_every_candidate() -> None:
 
 
 def test_rivals_are_frames_of_another_place() -> None:
-    """Same robot: more than 2 frames away along its trajectory; another robot: another
+    """Same robot: more than the gap (5 frames) away along its route; another robot: another
     submap. The best verified rival's inliers enter the evidence."""
     from service.app.decision import answer_evidence
     from service.app.results import Candidate
@@ -106,9 +106,32 @@ def test_the_rival_counts_in_the_best_candidates_terms_when_zoom_weighs() -> Non
     from service.app.results import Candidate
 
     best = Candidate(13, "s", "r", 0.9, 40, None, 0.9, False, scale=1.0)
-    rival = Candidate(10, "s", "r", 0.9, 50, None, 0.9, True, scale=0.7)
+    rival = Candidate(30, "s", "r", 0.9, 50, None, 0.9, True, scale=0.7)
     plain = answer_evidence([best, rival], 10, None, scale_tolerance=0.0)
     assert plain is not None and plain.rival_inliers == 50
     weighed = answer_evidence([best, rival], 10, None, scale_tolerance=0.5)
     assert weighed is not None
     assert weighed.rival_inliers == pytest.approx(50 * 0.7**2)
+
+
+def test_the_rival_reserve_is_another_place_than_every_checked_candidate() -> None:
+    """The frame verified besides the top ones when they all show one place: the first after
+    them that is a rival of each (so of whichever the re-rank puts first)."""
+    from service.app.decision import has_verified_rival, rival_reserve
+    from service.app.results import Candidate
+
+    def candidate(frame_id: int, robot: str = "r", submap: str = "s") -> Candidate:
+        return Candidate(frame_id, submap, robot, 0.9)
+
+    checked = [candidate(10), candidate(11), candidate(12)]
+    pool = [*checked, candidate(13), candidate(40, robot="q"), candidate(41, "q", "t")]
+    # 13 is within the gap of 10-12; robot q's frame 40 shares the submap: only 41 is elsewhere
+    assert rival_reserve(pool, 3) is pool[5]
+    assert rival_reserve(checked, 3) is None
+    assert not has_verified_rival(checked)  # none verified
+    checked[0].inliers, checked[2].inliers = 60, 20
+    assert not has_verified_rival(checked)  # 12 is the same place as 10
+    far = candidate(30)
+    far.inliers = 0
+    assert has_verified_rival([*checked, far])
+    assert not has_verified_rival([])

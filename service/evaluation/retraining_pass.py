@@ -220,11 +220,19 @@ def shot_data(
         np.zeros(0, dtype=np.int64) if k_shots is None else revisit_shots(revisited, k_shots)
     )
     test = np.setdiff1d(np.arange(len(revisited)), query_shots)
+    # the references' ids as the atlas stored them (what a refitted impostor probe names its
+    # frames by), the shots' after every one of them, in query order
+    ref_ids = (
+        np.asarray(start.stored.order, np.int64)
+        if start.stored is not None and len(start.stored) == n_refs
+        else np.arange(n_refs)
+    )
+    first_shot_id = int(ref_ids.max()) + 1 if n_refs else 0
     data = TrainingData(
         local=np.concatenate([ref_local, query_local[query_shots]]),
         global_=np.concatenate([ref_global, query_global[query_shots]]),
         submaps=np.concatenate([ref_submaps, revisited[query_shots]]),
-        frame_ids=np.concatenate([np.arange(n_refs), query_shots]),
+        frame_ids=np.concatenate([ref_ids, first_shot_id + query_shots]),
         robots=np.array([MAP_ROBOT] * n_refs + [QUERY_ROBOT] * len(query_shots)),
     )
     return query_shots, test, data

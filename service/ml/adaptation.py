@@ -65,22 +65,33 @@ class AdaptationResult:
 def probe_refit(
     base: HeadsConfig,
     differences: np.ndarray,
+    pair_ids: np.ndarray,
     config: PairWhiteningConfig,
     *,
     whiten: bool = True,
-    tune: Callable[[PairWhitening], PairWhitening] | None = None,
+    tune: Callable[[PairWhitening, np.ndarray], PairWhitening] | None = None,
 ) -> ProbeRefit:
-    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``;
-    ``whiten`` False: the centred input; ``tune``: the same loss steps on the result), on the
-    probe's frames but those it held out: the learned whitening decorrelates the atlas's
-    frames, so with them in the fit the probe's held-out frames would look as orthogonal as
-    stored ones, and wrong matches would score as rarer than they are."""
+    """Heads fitted as :func:`adapt_heads` fits them (the training pairs' ``differences``,
+    ``pair_ids`` their frames' ids; ``whiten`` False: the centred input; ``tune``: the same
+    loss steps on the result, over the pairs kept), on the probe's frames but those it held
+    out, and on the training pairs but those holding one of them: the learned whitening
+    decorrelates the atlas's frames and whitens out its pairs' differences, so with either in
+    the fit the probe's held-out frames would look as orthogonal as stored ones (or their
+    partners as close as trained pairs), and the score would call wrong matches rarer than
+    they are. When every pair holds a held-out frame, all are kept (nothing else to fit)."""
+    pair_ids = np.asarray(pair_ids, np.int64).reshape(-1, 2)
 
-    def refit(probe: ImpostorProbe) -> LoopNetHeads:
+    def refit(probe: ImpostorProbe, probe_ids: np.ndarray) -> LoopNetHeads:
         inputs = fused_inputs(base, probe.local_branch, probe.global_branch)
         seen = inputs if probe.held is None else inputs[~probe.held]
-        start = fitted_start(seen, differences, config, whiten)
-        return fold_into_heads(base, start if tune is None else tune(start))
+        kept = np.ones(len(pair_ids), bool)
+        if probe.held is not None:
+            held_ids = np.asarray(probe_ids)[probe.held]
+            kept = np.asarray(~np.isin(pair_ids, held_ids).any(axis=1), bool)
+            if not kept.any():
+                kept[:] = True
+        start = fitted_start(seen, differences[kept], config, whiten)
+        return fold_into_heads(base, start if tune is None else tune(start, kept))
 
     return refit
 
@@ -237,7 +248,7 @@ def adapt_heads(
     differences = pair_differences(inputs, train)
     whitening = fitted_start(inputs, differences, config, whiten)
     tuned: dict[str, Any] = {}
-    repeat: Callable[[PairWhitening], PairWhitening] | None = None
+    repeat: Callable[[PairWhitening, np.ndarray], PairWhitening] | None = None
     if pair_loss is not None:
         whitening, tuned, repeat = tune_on_pairs(
             inputs, whitening, start_from, data, train, window, pair_loss
@@ -265,7 +276,8 @@ def adapt_heads(
         "fit_seconds": round(fit_seconds, 3),
         "gate_seconds": round(time.perf_counter() - started - fit_seconds, 3),
     }
-    refit = probe_refit(base, differences, config, whiten=whiten, tune=repeat)
+    pair_ids = np.asarray(data.frame_ids)[train]
+    refit = probe_refit(base, differences, pair_ids, config, whiten=whiten, tune=repeat)
     return AdaptationResult(heads, whitening, gate, metrics, refit, trained_rows)
 
 
@@ -277,12 +289,15 @@ def tune_on_pairs(
     train: np.ndarray,
     window: int,
     config: PairLossConfig,
-) -> tuple[PairWhitening, dict[str, Any], Callable[[PairWhitening], PairWhitening] | None]:
+) -> tuple[
+    PairWhitening, dict[str, Any], Callable[[PairWhitening, np.ndarray], PairWhitening] | None
+]:
     """:func:`fine_tune` ``start`` (fitted on every training pair) for as many steps as a run
     on whole blocks of them, started from ``start_from`` those blocks and stopped early on the
     rest (their mean reciprocal rank, as the gate scores pairs), found best. Too few pairs to
     split, or no step helped: ``start``. Also returns how to repeat the kept steps from another
-    start (None when none were kept), for :func:`probe_refit`."""
+    start over a subset of the training pairs (a mask; None when no step was kept), for
+    :func:`probe_refit`."""
     fit_idx, stop_idx = split_pairs(len(train))
     if len(stop_idx) == 0:
         return start, {"pair_loss_steps": 0}, None
@@ -303,8 +318,8 @@ def tune_on_pairs(
         return start, {**metrics, "pair_loss_steps": 0}, None
     kept = replace(config, steps=steps)
 
-    def repeat(other: PairWhitening) -> PairWhitening:
-        return fine_tune(inputs, other, train, places, None, kept).transform
+    def repeat(other: PairWhitening, chosen: np.ndarray) -> PairWhitening:
+        return fine_tune(inputs, other, train[chosen], places, None, kept).transform
 
     final = fine_tune(inputs, start, train, places, None, kept)
     return final.transform, {**metrics, **final.metrics}, repeat

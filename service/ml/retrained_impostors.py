@@ -9,12 +9,15 @@ than any query's: a wrong match scored 12.3 after map-only retraining on cohog20
 
 Heads that were themselves fitted on the atlas's frames (an adaptation's learned whitening
 decorrelates them) would make the probe's held-out frames in-sample again; such a version
-passes ``refit``: heads fitted the same way without the probe's held-out frames.
+passes ``refit``: heads fitted the same way without the probe's held-out frames, nor the
+training pairs that hold one of them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+
+import numpy as np
 
 from service.ml.calibration import Calibration, CalibrationInputs
 from service.ml.calibration_config import ImpostorProbe
@@ -22,7 +25,8 @@ from service.ml.heads import LoopNetHeads
 from service.ml.impostors import ImpostorModel, pair_cosines
 from service.ml.pipeline import embed_vectors
 
-ProbeRefit = Callable[[ImpostorProbe], LoopNetHeads]
+# heads refitted for a probe, given the frame ids of the probe's rows
+ProbeRefit = Callable[[ImpostorProbe, np.ndarray], LoopNetHeads]
 
 
 def retrained_impostor_model(
@@ -35,6 +39,8 @@ def retrained_impostor_model(
     stored features ``inputs`` through the calibration's impostor probe; ``refit``: the heads
     to probe with, fitted without the probe's held-out frames (None: ``heads``)."""
     probe = calibration.impostor_probe(inputs)
-    probe_heads = heads if refit is None or probe.in_sample else refit(probe)
+    probe_heads = (
+        heads if refit is None or probe.in_sample else refit(probe, np.asarray(inputs.order))
+    )
     embeddings = embed_vectors(probe_heads, probe.local_branch, probe.global_branch)
     return ImpostorModel.fit(pair_cosines(embeddings, probe.first, probe.second))

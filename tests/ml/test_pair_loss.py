@@ -18,7 +18,13 @@ from service.ml.pair_loss import (
     identity_start,
     listwise_loss,
 )
-from service.ml.pair_whitening import PairWhiteningConfig, fused_inputs
+from service.ml.pair_whitening import (
+    PairWhitening,
+    PairWhiteningConfig,
+    fold_into_heads,
+    fused_inputs,
+    pair_differences,
+)
 from service.ml.training import TrainingData
 
 PLACES, DIM, NUISANCE = 80, 24, 4
@@ -154,9 +160,39 @@ def test_the_impostor_probe_refit_repeats_the_kept_loss_steps() -> None:
     active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
     assert result.metrics["pair_loss_steps"] > 0
     probe = ImpostorProbe(data.local, data.global_, np.zeros(0), np.zeros(0), in_sample=True)
-    refit = result.impostor_refit(probe)
+    refit = result.impostor_refit(probe, np.asarray(data.frame_ids))
     x, y = torch.from_numpy(data.local), torch.from_numpy(data.global_)
     with torch.no_grad():
         np.testing.assert_allclose(refit.embed(x, y), result.heads.embed(x, y), atol=1e-5)
         untuned = adapt_heads(data, pairs, active, PairWhiteningConfig(), window=0, whiten=False)
         assert not np.allclose(untuned.heads.embed(x, y), result.heads.embed(x, y), atol=1e-3)
+
+
+def test_the_impostor_probe_refit_leaves_out_its_held_frames_and_their_pairs() -> None:
+    """The probe's held-out frames play queries of unseen places: the refitted whitening sees
+    neither them nor the training pairs holding one (whitening out a pair's difference makes
+    its frames close; kept in, held-out frames would look closer to their partners and
+    farther from everything else than a query does). By hand: the same fit on the rest."""
+    data, pairs = revisits(seed=3)
+    ids = np.arange(2 * PLACES) + 100  # unique frame ids, as an atlas gives them
+    data = TrainingData(data.local, data.global_, data.submaps, ids, data.robots)
+    active = LoopNetHeads(HeadsConfig(DIM // 2, DIM // 2)).eval()
+    result = adapt_heads(data, pairs, active, PairWhiteningConfig(), window=0, whiten=True)
+    held = np.zeros(2 * PLACES, bool)
+    held[PLACES : PLACES + 20] = True  # the revisiting robot's first 20 frames
+    held[60:70] = True  # and a stretch of the map
+    probe = ImpostorProbe(data.local, data.global_, np.zeros(0), np.zeros(0), False, held)
+    refit = result.impostor_refit(probe, ids)
+    inputs = fused_inputs(active.config, data.local, data.global_)
+    train = pairs[result.trained_rows]
+    clean = train[~held[train].any(axis=1)]
+    assert 0 < len(clean) < len(train)
+    expected = fold_into_heads(
+        active.config,
+        PairWhitening.fit_differences(
+            inputs[~held], pair_differences(inputs, clean), PairWhiteningConfig()
+        ),
+    )
+    x, y = torch.from_numpy(data.local), torch.from_numpy(data.global_)
+    with torch.no_grad():
+        np.testing.assert_allclose(refit.embed(x, y), expected.embed(x, y), atol=1e-5)

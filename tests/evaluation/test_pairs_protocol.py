@@ -195,9 +195,17 @@ def test_the_rows_report_before_after_and_served(protocol_run) -> None:  # type:
     for key in ("recall@1", "recall_at_100_precision", "wrong_score_median", "right_score_median"):
         assert row[f"{key}_served"] == row[f"{key}_{side}"] or np.isnan(row[f"{key}_served"])
     assert 0.0 <= row["recall@1_after"] <= 1.0 and 0.0 <= row["recall@1_before"] <= 1.0
-    # the score's honesty: every test query with every map frame that is not a right one
+    # the score's honesty: every test query with every map frame of another place (at least
+    # the impostor model's gap, 5 places here, from each right reference)
     assert many.honesty_before, "the pass's atlas is calibrated: its score can be checked"
-    impostors = sum(len(dataset.references) - len(dataset.queries[q].positives) for q in many.test)
+    gap = max(5, len(dataset.references) // 20)
+    impostors = sum(
+        sum(
+            all(abs(r - p) >= gap for p in dataset.queries[q].positives)
+            for r in range(len(dataset.references))
+        )
+        for q in many.test
+    )
     assert row["impostors_impostor_pairs_before"] == impostors
     for side in ("before", "after") if many.after is not None else ("before",):
         at_2, at_3 = row[f"impostors_at_2_{side}"], row[f"impostors_at_3_{side}"]
@@ -229,3 +237,12 @@ def test_loopnet_eval_writes_the_pairs_protocol(tmp_path: Path) -> None:
     markdown = (config.output / "report.md").read_text()
     assert "## Adaptation from revisit pairs, as served" in markdown
     assert f"| observe | 1 | {row['observed']} (" in markdown
+
+
+def test_an_impostor_of_the_honesty_check_is_another_place_by_the_models_rule() -> None:
+    from service.evaluation.score_honesty import other_places
+
+    references = np.arange(20)
+    kept = other_places(references, frozenset({9, 10}), gap=5)
+    assert kept.tolist() == [r <= 4 or r >= 15 for r in range(20)]
+    assert other_places(references, frozenset(), gap=5).all()

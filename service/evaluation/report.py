@@ -157,7 +157,9 @@ def observed_pairs_table(rows: Sequence[dict[str, Any]]) -> str:
         "queries, in order, are observed as one robot's drive (its sequence on), every closure "
         "observe kept (verified, or a loop of its sequence) is a pair, and the test queries are "
         "the rest of the drive, places the job saw no pair of. Impostor pairs: every test "
-        "query with every map frame that is not a right reference; the share scoring at least 2 "
+        "query with every map frame of another place (at least the impostor model's gap, a "
+        "twentieth of the map's frames and at least 5, from each right reference); the share "
+        "scoring at least 2 "
         "(3) should be about 1 % (0.1 %) if the version's score means what it says "
         "(`service/evaluation/score_honesty.py`).",
     ]

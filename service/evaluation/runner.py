@@ -11,6 +11,9 @@ Methods, all on the same reference/query split and ground truth:
 - with ``sequence``: ``<method>+seqL`` rows scoring queries in dataset order through the
   service's sequence code (LoopNet per extractor and global only, each on the calibrated and
   the uncalibrated vectors), and full SeqSLAM at the same L.
+
+This module loads the data and runs the service passes; the rows that start from them are
+:mod:`service.evaluation.ablation_steps`, the run's state :mod:`service.evaluation.eval_run`.
 """
 
 from __future__ import annotations
@@ -22,57 +25,45 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from service.app.catalog import AtlasService
 from service.errors import WeightsUnavailable
 from service.evaluation import report as reporting
-from service.evaluation.adaptation_pass import PROTOCOL as ADAPT_PROTOCOL
-from service.evaluation.adaptation_pass import adaptation_rows
+from service.evaluation.ablation_steps import run_ablations
 from service.evaluation.calibrated_pass import (
     DEFAULT_CALIBRATION,
-    CalibratedBranches,
     calibrated_methods,
 )
 from service.evaluation.datasets import Dataset, DatasetError, all_images, load_dataset
 from service.evaluation.eval_config import EvalConfig
+from service.evaluation.eval_run import EvalRun, LoadedData
 from service.evaluation.image_check import unreadable_images
 from service.evaluation.method_rows import (
     EXTRACTOR_LABELS,
-    baseline_method,
-    full_seqslam_methods,
     loopnet_methods,
     served_rows,
-    unit_embeddings,
 )
 from service.evaluation.metrics import summary
-from service.evaluation.pairs_pass import observed_pairs_rows, observed_pairs_runs
+from service.evaluation.pairs_pass import observed_pairs_runs
 from service.evaluation.protocol import (
     MethodResult,
     assign_submaps,
 )
-from service.evaluation.report_context import report_of
 from service.evaluation.retraining_pass import (
     RetrainingRow,
-    StartingPoint,
-    retraining_rows,
 )
-from service.evaluation.sequence_pass import sequence_methods
 from service.evaluation.served_pass import ServedAnswers
 from service.evaluation.service_pass import ATLAS as SERVICE_ATLAS
-from service.evaluation.service_pass import InAtlas, PassResult, run_service_pass
+from service.evaluation.service_pass import InAtlas, run_service_pass
 from service.evaluation.verification_pass import (
     KeypointCache,
     subsample_queries,
-    verification_methods,
 )
 from service.jobs.calibration import MIN_FRAMES as CALIBRATION_MIN_FRAMES
 from service.ml.features import FrameFeatures
-from service.ml.pair_whitening import PairWhiteningConfig
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import resolve_preset
-from service.ml.sequences import SequenceSettings
 
 log = logging.getLogger(__name__)
 
@@ -82,94 +73,6 @@ class EvalResult:
     report: dict[str, Any]
     methods: list[MethodResult] = field(default_factory=list)
     retraining: list[RetrainingRow] = field(default_factory=list)
-
-
-def adapted_rows(
-    config: EvalConfig,
-    dataset: Dataset,
-    submap_of: Sequence[int],
-    first_pass: PassResult,
-    calibrated_branches: dict[str, CalibratedBranches],
-    methods: Sequence[MethodResult],
-) -> list[RetrainingRow]:
-    """The adaptation job's rows (revisit pairs, :mod:`adaptation_pass`), from the service row."""
-    extractor = first_pass.preset.local.name
-    service_row = f"loopnet-{extractor}"
-    calibrated_start = calibrated_branches.get(service_row)
-    before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
-    before = next(m for m in methods if m.name == before_row)
-    return adaptation_rows(
-        dataset,
-        submap_of,
-        first_pass,
-        StartingPoint.of(first_pass, before, calibrated_start),
-        shots=config.adapt_shots,
-        config=PairWhiteningConfig(shrinkage=config.adapt_shrinkage),
-        method=config.adapt_method,
-        k=config.k,
-        extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
-    )
-
-
-@dataclass
-class LoadedData:
-    """The dataset a run evaluates, after its slice, stride and unreadable images."""
-
-    dataset: Dataset
-    submap_of: list[int]
-    submap_note: str
-    unreadable: dict[Path, str]
-    output: Path
-    cache_dir: Path
-
-
-@dataclass
-class EvalRun:
-    """What the steps of a run fill in: rows, stage timings, what was skipped and why, the
-    extractor passes and what the later rows start from."""
-
-    config: EvalConfig
-    data: LoadedData
-    methods: list[MethodResult] = field(default_factory=list)
-    global_only: list[MethodResult] = field(default_factory=list)
-    stages: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
-    skipped: dict[str, str] = field(default_factory=dict)
-    passes: list[PassResult] = field(default_factory=list)
-    first_keypoints: KeypointCache | None = None
-    calibrated_vectors: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    calibrated_branches: dict[str, CalibratedBranches] = field(default_factory=dict)
-    retraining: list[RetrainingRow] = field(default_factory=list)
-    observed_pairs: list[dict[str, Any]] = field(default_factory=list)
-
-    @property
-    def first_pass(self) -> PassResult:
-        """The first extractor's pass: the "LoopNet" rows and every later step start from it."""
-        return self.passes[0]
-
-    def report(self, partial: str | None) -> dict[str, Any]:
-        data = self.data
-        report = report_of(
-            self.config,
-            data.dataset,
-            data.submap_note,
-            self.first_pass,
-            self.methods + self.global_only,
-            self.stages,
-            self.skipped,
-            self.retraining,
-            data.unreadable,
-            partial,
-        )
-        report["observed_pairs"] = self.observed_pairs
-        return report
-
-    def checkpoint(self, next_step: str) -> None:
-        """Write the rows done so far (no plots): a run stopped later keeps them."""
-        if self.passes:
-            report = self.report(f"stopped before {next_step}")
-            output = self.data.output
-            reporting.write_json(report, output / "report.json")
-            reporting.write_markdown(report, self.methods + self.global_only, output / "report.md")
 
 
 def run_evaluation(config: EvalConfig) -> EvalResult:
@@ -306,74 +209,11 @@ def run_passes(run: EvalRun) -> None:
     run.global_only = []
 
 
-def run_ablations(run: EvalRun) -> None:
-    """The rows that start from the passes: retraining and adaptation (the first pass's
-    heads), verification, sequences, then the classical baselines."""
-    config = run.config
-    if config.retrain_shots:
-        _retraining_step(run)
-        run.checkpoint("verification and baselines")
-    if config.adapt_shots:
-        run.retraining += adapted_rows(
-            config,
-            run.data.dataset,
-            run.data.submap_of,
-            run.first_pass,
-            run.calibrated_branches,
-            run.methods,
-        )
-        run.methods += [row.after for row in run.retraining if row.protocol == ADAPT_PROTOCOL]
-        run.checkpoint("verification and baselines")
-    if run.first_pass.in_atlas:
-        extractor = run.first_pass.preset.local.name
-        label = f"LoopNet {EXTRACTOR_LABELS.get(extractor, extractor)}"
-        for observed in run.first_pass.in_atlas:
-            rows, report_row = observed_pairs_rows(
-                observed, run.data.dataset, run.data.submap_of, label
-            )
-            run.methods += rows
-            run.observed_pairs.append(report_row)
-        run.checkpoint("verification and baselines")
-    elif config.adapt_observe_shots or config.adapt_labelled_shots or config.adapt_stream_percents:
-        run.skipped["pairs protocol"] = "needs the served pass (--served) and queries"
-    if config.verify and run.first_keypoints is not None:
-        _verification_step(run, run.first_keypoints)
-        run.checkpoint("the baselines")
-    if config.sequence:
-        _sequence_step(run)
-        run.checkpoint("the baselines")
-    for name in config.baselines:
-        _baseline_step(run, name)
-        run.checkpoint("the remaining baselines and the plots")
-
-
 def writereport_of(run: EvalRun) -> EvalResult:
     """The full report: report.json, report.md and the plots."""
     report = run.report(None)
     _write_final(run.config, run.data.dataset, run.methods, report)
     return EvalResult(report, run.methods, run.retraining)
-
-
-def _retraining_step(run: EvalRun) -> None:
-    # the heads start from the service row: calibrated when the pass could calibrate
-    config, first_pass = run.config, run.first_pass
-    extractor = first_pass.preset.local.name
-    service_row = f"loopnet-{extractor}"
-    calibrated_start = run.calibrated_branches.get(service_row)
-    before_row = service_row if calibrated_start is not None else f"{service_row}-uncalibrated"
-    before = next(m for m in run.methods if m.name == before_row)
-    run.retraining = retraining_rows(
-        run.data.dataset,
-        run.data.submap_of,
-        first_pass,
-        StartingPoint.of(first_pass, before, calibrated_start),
-        shots=config.retrain_shots,
-        protocols=config.retrain_protocols,
-        params=config.retrain_params,
-        k=config.k,
-        extractor_label=EXTRACTOR_LABELS.get(extractor, extractor),
-    )
-    run.methods += [row.after for row in run.retraining]
 
 
 def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None:
@@ -411,71 +251,6 @@ def _observed_pairs_step(config: EvalConfig, data: LoadedData) -> InAtlas | None
         ]
 
     return run
-
-
-def _verification_step(run: EvalRun, keypoints: KeypointCache) -> None:
-    config, first_pass = run.config, run.first_pass
-    extractor_name = first_pass.preset.local.name
-    verified, verification_stages = verification_methods(
-        run.data.dataset,
-        run.data.submap_of,
-        first_pass.ranking,
-        first_pass.query_ms,
-        matchers=config.verify,
-        top=config.verify_top,
-        ransac_backend=config.ransac_backend,
-        cache=keypoints,
-        similarity_threshold=first_pass.threshold,
-        extractor_label=EXTRACTOR_LABELS.get(extractor_name, extractor_name),
-    )
-    run.methods += verified
-    run.stages.update(verification_stages)
-
-
-def _sequence_step(run: EvalRun) -> None:
-    """``+seqL`` rows over each pass's calibrated and uncalibrated rows and the global branch."""
-    config = run.config
-    bases = []
-    rows = {m.name: m for m in run.methods}
-    for result in run.passes:
-        extractor = result.preset.local.name
-        calibrated_row = f"loopnet-{extractor}"
-        if calibrated_row in run.calibrated_vectors:
-            bases.append((rows[calibrated_row], *run.calibrated_vectors[calibrated_row]))
-        bases.append(
-            (
-                rows[f"{calibrated_row}-uncalibrated"],
-                *unit_embeddings(result, result.preset.alpha),
-            )
-        )
-    if "global-only" in run.calibrated_vectors:
-        bases.append((rows["global-only"], *run.calibrated_vectors["global-only"]))
-    if "global-only-uncalibrated" in rows:
-        bases.append((rows["global-only-uncalibrated"], *unit_embeddings(run.first_pass, 0.0)))
-    run.methods += sequence_methods(
-        bases,
-        run.data.dataset,
-        run.data.submap_of,
-        config.sequence,
-        config.k,
-        SequenceSettings(
-            contrast_window=config.sequence_contrast,
-            seed_frames=config.sequence_seed_frames,
-        ),
-    )
-
-
-def _baseline_step(run: EvalRun, name: str) -> None:
-    config, data = run.config, run.data
-    method, baseline_stages, similarity = baseline_method(
-        name, run.first_pass.preset.local.long_side, data.dataset, data.submap_of, config.k
-    )
-    run.methods.append(method)
-    run.stages[method.label] = baseline_stages
-    if config.sequence and name == "seqslam-sad":
-        run.methods += full_seqslam_methods(
-            similarity, method, data.dataset, data.submap_of, config.sequence, config.k
-        )
 
 
 def _write_final(

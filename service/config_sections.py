@@ -141,8 +141,10 @@ class DecisionSettings(BaseSettings):
         ge=0,
         description="Frames of one robot at most this many apart along its route are one "
         "stretch of it: the decision's rival part (the best verified candidate of another "
-        "place) looks beyond them. Set it to the frames a robot sends while it moves a few "
-        "metres; another robot's frame is another place only in another submap.",
+        "place) looks beyond them; another robot's frame is another place only in another "
+        "submap. Larger values close more loops on dense keyframes (gardenspoint_cohog200: "
+        "R@100%P 0.49 at 2, 0.61 at 5) but let a match a few frames off pass when its true "
+        "neighbours verify as well (benchmarks/RESULTS.md, issue 25, stop 36).",
     )
     matcher: str = Field(
         "mnn",

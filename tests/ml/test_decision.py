@@ -71,7 +71,7 @@ def test_small_atlases_verify_every_candidate() -> None:
 
 
 def test_rivals_are_frames_of_another_place() -> None:
-    """Same robot: more than the gap (5 frames) away along its route; another robot: another
+    """Same robot: more than the gap (2 frames) away along its route; another robot: another
     submap. The best verified rival's inliers enter the evidence."""
     from service.app.decision import answer_evidence
     from service.app.results import Candidate

@@ -46,13 +46,19 @@ def rival_reserve(
     return None
 
 
-def has_verified_rival(candidates: list[Candidate], gap: int = DEFAULT_RIVAL_GAP) -> bool:
-    """Whether a verified candidate of another place than the best (``candidates`` in their
-    final order) stands beside it: without one the decision has no rival to weigh."""
+def verified_rivals(candidates: list[Candidate], gap: int = DEFAULT_RIVAL_GAP) -> list[Candidate]:
+    """The verified candidates of another place than the best (``candidates`` in their final
+    order): what the decision's rival part weighs."""
     if not candidates:
-        return False
+        return []
     best = candidates[0]
-    return any(c.inliers is not None and is_rival(best, c, gap) for c in candidates[1:])
+    return [c for c in candidates[1:] if c.inliers is not None and is_rival(best, c, gap)]
+
+
+def has_verified_rival(candidates: list[Candidate], gap: int = DEFAULT_RIVAL_GAP) -> bool:
+    """Whether a verified rival stands beside the best: without one the decision has no rival
+    to weigh."""
+    return bool(verified_rivals(candidates, gap))
 
 
 def answer_evidence(
@@ -70,9 +76,8 @@ def answer_evidence(
     best = candidates[0]
     per_inlier = support(1, best.scale, scale_tolerance)
     rivals = [
-        support(c.inliers, c.scale, scale_tolerance) / per_inlier
-        for c in candidates[1:]
-        if c.inliers is not None and is_rival(best, c, rival_gap)
+        support(c.inliers or 0, c.scale, scale_tolerance) / per_inlier
+        for c in verified_rivals(candidates, rival_gap)
     ]
     score_excess = best.score - math.log10(max(frames, 1)) if best.score is not None else None
     return Evidence(

@@ -67,10 +67,13 @@ def answer_evidence(
     sequence: SequenceAnswer | None,
     scale_tolerance: float = DEFAULT_SCALE_TOLERANCE,
     rival_gap: int = DEFAULT_RIVAL_GAP,
+    sequence_agrees: bool | None = True,
 ) -> Evidence | None:
     """The decision's evidence for the best candidate (``candidates`` in their final order);
     None without candidates. The rival's inliers are counted in the best's terms: both
-    discounted by their zoom as the re-rank discounts them (``scale_tolerance``)."""
+    discounted by their zoom as the re-rank discounts them (``scale_tolerance``).
+    ``sequence_agrees``: whether the robot's sequence places it where the best candidate is
+    (:func:`sequence_part`)."""
     if not candidates:
         return None
     best = candidates[0]
@@ -85,9 +88,24 @@ def answer_evidence(
         inlier_ratio=best.inlier_ratio,
         rival_inliers=max(rivals) if rivals else None,
         score_excess=score_excess,
-        sequence_margin=sequence.margin if sequence is not None and informative(sequence) else None,
+        sequence_margin=sequence_part(sequence, sequence_agrees),
         frames=frames,
     )
+
+
+def sequence_part(sequence: SequenceAnswer | None, agrees: bool | None) -> float | None:
+    """The sequence's evidence for the best candidate: its margin when the sequence places the
+    robot where that candidate is; the margin's negative when it places it elsewhere (the
+    candidate's place then scores at least the margin below the sequence's own, since the
+    margin is over the best rival place); None when the sequence is not informative or
+    where it points cannot be compared (``agrees`` None).
+
+    A sequence's margin is about its own place: lent to a single-frame match of another place
+    (a frame nine places off, or the robot's own frames of half a minute ago that verify as
+    well), it closed loops the sequence itself contradicted."""
+    if sequence is None or not informative(sequence) or agrees is None:
+        return None
+    return sequence.margin if agrees else -sequence.margin
 
 
 def informative(sequence: SequenceAnswer | None) -> bool:

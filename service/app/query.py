@@ -224,6 +224,11 @@ class AtlasQueries(Observations):
             else None
         )
         sequence = found.evidence.sequence if found.evidence is not None else None
+        agrees = (
+            found.evidence.same_place(match.frame_id, sequence.frame_id)
+            if found.evidence is not None and sequence is not None and match is not None
+            else None
+        )
         decision = decide_loop(
             answer_evidence(
                 candidates,
@@ -231,6 +236,7 @@ class AtlasQueries(Observations):
                 sequence,
                 self.verification.config.scale_tolerance,
                 self.settings.rival_gap_frames,
+                agrees,
             ),
             threshold=self.settings.loop_probability_min,
             verify=enabled,

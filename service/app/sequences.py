@@ -41,6 +41,7 @@ from service.ml.sequences import (
     PlaceStatus,
     SequenceSettings,
     Trajectories,
+    agree,
     decide,
     distinctiveness,
     match_sequence,
@@ -98,6 +99,14 @@ class RobotEvidence:
     consistency: ConsistencySettings
     # the search's hits in trajectory-contrast order (indices; None: contrast unavailable)
     hit_order: list[int] | None = None
+
+    def same_place(self, frame_id: int, other_id: int) -> bool | None:
+        """Whether two map frames show one place by the consistency's rule (one reference
+        trajectory, at most ``max_step`` frames apart); None when the map does not hold one."""
+        a, b = self.position.get(frame_id, -1), self.position.get(other_id, -1)
+        if a < 0 or b < 0:
+            return None
+        return agree(a, b, self.trajectories, self.consistency.max_step)
 
     def verdict(self, frame_id: int | None, passed: bool) -> Verdict:
         """The newest single-frame answer (its matched frame and whether it passed) judged with

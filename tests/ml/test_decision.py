@@ -135,3 +135,40 @@ def test_the_rival_reserve_is_another_place_than_every_checked_candidate() -> No
     far.inliers = 0
     assert has_verified_rival([*checked, far])
     assert not has_verified_rival([])
+
+
+def test_a_sequence_lends_its_margin_only_to_a_match_at_its_own_place() -> None:
+    """The replay's false loop (eval-online, adapted version): the robot's own frame 27 back
+    verified with 44 inliers beside a rival with 40, while its sequence placed it, by a margin
+    of 5.2, at the right frame of the first traversal. The margin backed the wrong frame into
+    a loop; for a match elsewhere it counts against."""
+    from service.app.decision import answer_evidence
+    from service.app.results import Candidate, SequenceAnswer
+
+    best = Candidate(6677, "s", "r", 0.63, 44, 6.08, 0.98, True, scale=0.96)
+    rival = Candidate(6666, "s", "r", 0.65, 40, 6.31, 1.0, True, scale=0.99)
+    sequence = SequenceAnswer(14.6, 10, [], 1.0, 3161, 5.23, 5769, False)
+
+    def decided(agrees: bool | None) -> tuple[float | None, bool]:
+        evidence = answer_evidence([best, rival], 6700, sequence, 0.0, 2, agrees)
+        assert evidence is not None
+        decision = decide_loop(evidence, min_inliers=23)
+        return evidence.sequence_margin, decision.passed
+
+    assert decided(True) == (5.23, True)  # at the sequence's place: its margin backs it
+    assert decided(False) == (-5.23, False)  # elsewhere: the sequence argues against it
+    assert decided(None)[0] is None  # cannot be compared: the part is absent
+
+
+def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
+    """Two map frames are one place on one trajectory within ``max_step`` frames."""
+    from service.app.sequences import RobotEvidence
+    from service.ml.sequences import ConsistencySettings, Trajectories
+
+    trajectories = Trajectories.build(["r"] * 20 + ["q"] * 5)
+    position = {100 + i: i for i in range(25)}
+    evidence = RobotEvidence(None, [], position, trajectories, ConsistencySettings(max_step=3))
+    assert evidence.same_place(104, 107) is True
+    assert evidence.same_place(104, 113) is False
+    assert evidence.same_place(119, 120) is False  # another robot's trajectory
+    assert evidence.same_place(104, 999) is None  # not held by the map

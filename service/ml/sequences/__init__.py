@@ -7,6 +7,7 @@ from service.ml.sequences.consistency import (
     Hypothesis,
     PlaceDecision,
     PlaceStatus,
+    agree,
     consistent_scores,
     decide,
 )
@@ -31,6 +32,7 @@ __all__ = [
     "SequenceMatch",
     "SequenceSettings",
     "Trajectories",
+    "agree",
     "carried_timestamps",
     "consistent_scores",
     "decide",

@@ -49,7 +49,9 @@ class PlaceDecision:
     reference: int | None  # the newest hypothesis' frame (None when nothing passed)
 
 
-def _agree(earlier: int, later: int, trajectories: Trajectories, max_step: int) -> bool:
+def agree(earlier: int, later: int, trajectories: Trajectories, max_step: int) -> bool:
+    """Whether two map positions are one place: on one reference trajectory, at most
+    ``max_step`` frames apart along it."""
     if trajectories.sequence[earlier] != trajectories.sequence[later]:
         return False
     return abs(int(trajectories.rank[later]) - int(trajectories.rank[earlier])) <= max_step
@@ -72,7 +74,7 @@ def decide(
             break
         if earlier is None or not earlier.passed:
             break
-        if not _agree(earlier.reference, later.reference, trajectories, settings.max_step):
+        if not agree(earlier.reference, later.reference, trajectories, settings.max_step):
             break
         consistent += 1
         later = earlier
@@ -105,7 +107,7 @@ def consistent_scores(
             not cut[i]
             and references[i] >= 0
             and references[i - 1] >= 0
-            and _agree(references[i - 1], references[i], trajectories, settings.max_step)
+            and agree(references[i - 1], references[i], trajectories, settings.max_step)
         ):
             run[i] = run[i - 1] + 1
     k = settings.required

@@ -15,7 +15,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.app.decision import (
     answer_evidence,
+    at_sequence_place,
     has_verified_rival,
+    names_the_place,
+    place_first,
     probable_candidate,
     rival_reserve,
     verified_count,
@@ -69,6 +72,9 @@ class Found:
     names: dict[int, str]
     stored: dict[int, LocalFeatures]  # keypoints of the candidates to verify
     reserve: Candidate | None  # verified too when no checked candidate is another place
+    # the candidate at the place the robot's sequence names, when no checked candidate shows it
+    # (verified too, and put first: :func:`place_first`); None: the sequence names none
+    place: Candidate | None
     evidence: RobotEvidence | None  # the robot's sequence and previous observations
     proposals: list[int]  # the search's best frames: what this frame proposes to sequences
     stay_frames: int  # the robot's current stay, left out of the search
@@ -202,6 +208,14 @@ class AtlasQueries(Observations):
             ):
                 verifications.update(self._verify(view, [reserve], found, min_inliers))
                 candidates = self._reranked(candidates)
+            # a robot's sequence that names a place: the answer is about it (its frame verified
+            # when no checked candidate shows it), the best single frame a rival beside it
+            if found.place is not None and candidates[0].inliers is not None:
+                verifications.update(self._verify(view, [found.place], found, min_inliers))
+                candidates = [*candidates, found.place]
+            placed = at_sequence_place(candidates, found.evidence)
+            if placed is not None:
+                candidates = place_first(candidates, placed)
             timings["verification"] = (time.perf_counter() - start) * 1000.0
         if prediction is None:
             guess = SubmapGuess(
@@ -375,14 +389,46 @@ class AtlasQueries(Observations):
             if (f := frames.get(h.frame_id)) is not None
         ]
         stored: dict[int, LocalFeatures] = {}
-        reserve = None
+        reserve = place = None
         if self.verification.enabled and candidates:
             checked = candidates[: verified_count(top, state.index.size)]
             reserve = rival_reserve(candidates, len(checked), self.settings.rival_gap_frames)
-            to_load = checked if reserve is None else [*checked, reserve]
+            place = self._sequence_place(session, evidence, checked, candidates, frames, names)
+            to_load = [*checked, *(c for c in (reserve, place) if c is not None)]
             stored = load_local_features(session, [c.frame_id for c in to_load])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
-        return Found(candidates, frames, names, stored, reserve, evidence, proposals, len(stay))
+        return Found(
+            candidates, frames, names, stored, reserve, place, evidence, proposals, len(stay)
+        )
+
+    def _sequence_place(
+        self,
+        session: Session,
+        evidence: RobotEvidence | None,
+        checked: list[Candidate],
+        candidates: list[Candidate],
+        frames: dict[int, Frame],
+        names: dict[int, str],
+    ) -> Candidate | None:
+        """The candidate at the place the robot's sequence names (:func:`names_the_place`) when
+        none of the ``checked`` ones shows it: the first of the other hits that does, else the
+        sequence's aligned frame itself (its frame row added to ``frames``). None when the
+        sequence names no place or a checked candidate shows it."""
+        sequence = evidence.sequence if evidence is not None else None
+        if evidence is None or sequence is None or not names_the_place(sequence):
+            return None
+        if any(evidence.same_place(c.frame_id, sequence.frame_id) for c in checked):
+            return None
+        for candidate in candidates[len(checked) :]:
+            if evidence.same_place(candidate.frame_id, sequence.frame_id):
+                return candidate
+        frame = repo.frames_by_id(session, frame_ids=[sequence.frame_id]).get(sequence.frame_id)
+        if frame is None or evidence.sequence_similarity is None:
+            return None
+        frames[frame.id] = frame
+        return Candidate(
+            frame.id, names[frame.submap_id], frame.robot_id, evidence.sequence_similarity
+        )
 
     def _stay(
         self,

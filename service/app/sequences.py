@@ -99,6 +99,8 @@ class RobotEvidence:
     consistency: ConsistencySettings
     # the search's hits in trajectory-contrast order (indices; None: contrast unavailable)
     hit_order: list[int] | None = None
+    # cosine of the query with the sequence's aligned frame (None: no sequence)
+    sequence_similarity: float | None = None
 
     def same_place(self, frame_id: int, other_id: int) -> bool | None:
         """Whether two map frames show one place by the consistency's rule (one reference
@@ -119,6 +121,14 @@ class RobotEvidence:
         if self.sequence is not None and self.sequence.passed:
             return Verdict(PlaceStatus.LOOP, decision.consistent, self.sequence.frame_id)
         return Verdict(decision.status, decision.consistent)
+
+
+def _similarity(view: SequenceMap, query: np.ndarray, frame_id: int) -> float | None:
+    """Cosine of ``query`` with the map's vector of ``frame_id`` (None: not held)."""
+    position = view.positions([frame_id])[0]
+    if position < 0:
+        return None
+    return float(view.lookup(np.array([position]))[0] @ np.asarray(query, np.float32))
 
 
 def single_frame_verdict(frame_id: int | None, passed: bool) -> Verdict:
@@ -236,6 +246,7 @@ class SequenceScorer:
                 view.trajectories,
                 self.consistency,
                 contrast_order(view, contrasted[0], hits),
+                _similarity(view, newest, sequence.frame_id) if sequence is not None else None,
             )
 
     def _stays(

@@ -228,6 +228,20 @@ def observe(
     return result  # type: ignore[no-any-return]
 
 
+def map_then_rover_past_decoys(client: TestClient, pipeline) -> tuple[list[int], list[QueryResult]]:  # type: ignore[no-untyped-def]
+    """The mapper's places 0..39, then the rover observing places 20..24 each beside its decoy
+    with sequences of 5: the map's frame ids and the rover's answers."""
+    wait_ready(client)
+    assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+    assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+    ids = [insert(client, pipeline, features(G[p]), "mapper", float(p)) for p in range(PLACES)]
+    answers = [
+        observe(client, ambiguous(place, DECOYS[i]), 100.0 + i, sequence_length=5)
+        for i, place in enumerate([20, 21, 22, 23, 24])
+    ]
+    return ids, answers
+
+
 def kept_proposals(client: TestClient) -> dict[int, int]:
     service = client.app.state.runtime.service  # type: ignore[attr-defined]
     with service.sessions() as session:
@@ -294,14 +308,7 @@ def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
         trajectory_contrast_frames=0,
         pairs_from_sequence_loops=pairs_from_sequence_loops,
     ) as client:
-        wait_ready(client)
-        assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
-        assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
-        ids = [insert(client, pipeline, features(G[p]), "mapper", float(p)) for p in range(PLACES)]
-        answers = [
-            observe(client, ambiguous(place, DECOYS[i]), 100.0 + i, sequence_length=5)
-            for i, place in enumerate([20, 21, 22, 23, 24])
-        ]
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
         listed = client.get("/v1/atlases/campus/pairs", params={"robot": "rover"})
         assert listed.status_code == 200, listed.text
         pairs = listed.json()
@@ -365,3 +372,27 @@ def test_trajectory_contrast_finds_the_place_across_a_change_of_condition(
     else:
         assert not any(f == e for f, e in zip(found, expected, strict=True))
         assert not any(f == e for f, e in zip(matched, expected, strict=True))
+
+
+@pytest.mark.parametrize("verify_top", [5, 1])
+def test_the_answer_is_about_the_place_the_sequence_names(
+    data_dir: Path, pipeline, verify_top: int
+) -> None:  # type: ignore[no-untyped-def]
+    """With verification on, each frame alone still matches its decoy best, while the rover's
+    sequence names place 24 by a wide margin: the answer is about place 24 (verified, even
+    when it is not among the ``verify_top`` checked candidates), the decoy stands beside it as
+    a rival, and the sequence's margin backs the match. Before, the margin was lent to the
+    decoy: the match that a sequence elsewhere contradicts."""
+    from service.api.app import create_app
+
+    settings = make_settings(data_dir, verify_top=verify_top, trajectory_contrast_frames=0)
+    with TestClient(create_app(settings, pipeline=pipeline)) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+    newest = answers[-1]
+    assert newest.sequence is not None and newest.sequence.frame_id == ids[24]
+    assert newest.sequence.margin >= 2.0
+    assert newest.match is not None and newest.match.frame_id == ids[24]
+    assert newest.match.inliers is not None  # verified
+    assert ids[DECOYS[4]] in [c.frame_id for c in newest.candidates]
+    assert newest.decision is not None
+    assert newest.decision.parts["sequence"] == pytest.approx(newest.sequence.margin, abs=1e-3)

@@ -11,7 +11,9 @@ service already computes for the best candidate (after verification has re-ranke
   apart;
 - ``score``: its calibrated score minus ``log10(frames)`` (the best of N impostors is N times
   likelier to look this alike), only on a calibrated model version;
-- ``sequence``: the robot's sequence margin over its best rival place, when a robot streams.
+- ``sequence``: the robot's sequence margin over its best rival place, when a robot streams
+  (for a match at the sequence's place; negated for a match elsewhere:
+  :func:`service.app.decision.sequence_part`).
 
 Each part enters centred, so a part the answer does not have (no calibration yet, no robot)
 adds nothing and the others decide. The geometric and score coefficients are set by hand and

@@ -172,3 +172,20 @@ def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
     assert evidence.same_place(104, 113) is False
     assert evidence.same_place(119, 120) is False  # another robot's trajectory
     assert evidence.same_place(104, 999) is None  # not held by the map
+
+
+def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:
+    """Below the sequence part's centre a sequence argues for no place, so the answer stays
+    with the best single frame; an uninformative sequence (no rival place) names none."""
+    from service.app.decision import names_the_place, place_first
+    from service.app.results import Candidate, SequenceAnswer
+    from service.ml.decision import CENTRES
+
+    def sequence(margin: float, rival: int | None = 9) -> SequenceAnswer:
+        return SequenceAnswer(10.0, 5, [], 1.0, 3, margin, rival, False)
+
+    assert names_the_place(sequence(CENTRES["sequence"]))
+    assert not names_the_place(sequence(CENTRES["sequence"] - 0.1))
+    assert not names_the_place(sequence(9.0, rival=None))
+    a, b, c = (Candidate(i, "s", "r", 0.5) for i in (1, 2, 3))
+    assert [x.frame_id for x in place_first([a, b, c], c)] == [3, 1, 2]

@@ -6,10 +6,9 @@ from __future__ import annotations
 import math
 
 from service.app.results import Candidate, SequenceAnswer
-from service.app.sequences import RobotEvidence, Verdict
+from service.app.sequences import Verdict
 from service.ml.decision import (
     CANDIDATE_PROBABILITY,
-    CENTRES,
     DEFAULT_RIVAL_GAP,
     Decision,
     Evidence,
@@ -112,37 +111,6 @@ def sequence_part(sequence: SequenceAnswer | None, agrees: bool | None) -> float
     if sequence is None or not informative(sequence) or agrees is None:
         return None
     return sequence.margin if agrees else -sequence.margin
-
-
-def names_the_place(sequence: SequenceAnswer | None) -> bool:
-    """Whether the robot's sequence says where it is firmly enough for the answer to be about
-    its place: informative, with a margin from the decision's neutral point on (below it, the
-    sequence part argues for no place at all)."""
-    return sequence is not None and informative(sequence) and sequence.margin >= CENTRES["sequence"]
-
-
-def place_first(candidates: list[Candidate], place: Candidate) -> list[Candidate]:
-    """``candidates`` with ``place`` (the candidate at the sequence's place) first, the others
-    in their order: the single frame that verified best becomes a rival of the sequence's place
-    when it is another, and the decision weighs both."""
-    return [place, *(c for c in candidates if c.frame_id != place.frame_id)]
-
-
-def at_sequence_place(
-    candidates: list[Candidate], evidence: RobotEvidence | None
-) -> Candidate | None:
-    """The first verified candidate at the place the robot's sequence names
-    (:func:`names_the_place`); None when it names none or no verified
-    candidate shows it."""
-    sequence = evidence.sequence if evidence is not None else None
-    if evidence is None or sequence is None or not names_the_place(sequence):
-        return None
-    for candidate in candidates:
-        if candidate.inliers is not None and evidence.same_place(
-            candidate.frame_id, sequence.frame_id
-        ):
-            return candidate
-    return None
 
 
 def informative(sequence: SequenceAnswer | None) -> bool:

@@ -15,10 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.app.decision import (
     answer_evidence,
-    at_sequence_place,
     has_verified_rival,
-    names_the_place,
-    place_first,
     probable_candidate,
     rival_reserve,
     verified_count,
@@ -33,6 +30,7 @@ from service.app.results import (
     VerificationSummary,
     place_margin,
 )
+from service.app.sequence_place import at_sequence_place, place_first, sequence_place
 from service.app.sequences import (
     SERVICE_SEQUENCE,
     RobotContext,
@@ -393,41 +391,12 @@ class AtlasQueries(Observations):
         if self.verification.enabled and candidates:
             checked = candidates[: verified_count(top, state.index.size)]
             reserve = rival_reserve(candidates, len(checked), self.settings.rival_gap_frames)
-            place = self._sequence_place(session, evidence, checked, candidates, frames, names)
+            place = sequence_place(session, evidence, checked, candidates, frames, names)
             to_load = [*checked, *(c for c in (reserve, place) if c is not None)]
             stored = load_local_features(session, [c.frame_id for c in to_load])
         proposals = [h.frame_id for h in hits[: SERVICE_SEQUENCE.seeds]]
         return Found(
             candidates, frames, names, stored, reserve, place, evidence, proposals, len(stay)
-        )
-
-    def _sequence_place(
-        self,
-        session: Session,
-        evidence: RobotEvidence | None,
-        checked: list[Candidate],
-        candidates: list[Candidate],
-        frames: dict[int, Frame],
-        names: dict[int, str],
-    ) -> Candidate | None:
-        """The candidate at the place the robot's sequence names (:func:`names_the_place`) when
-        none of the ``checked`` ones shows it: the first of the other hits that does, else the
-        sequence's aligned frame itself (its frame row added to ``frames``). None when the
-        sequence names no place or a checked candidate shows it."""
-        sequence = evidence.sequence if evidence is not None else None
-        if evidence is None or sequence is None or not names_the_place(sequence):
-            return None
-        if any(evidence.same_place(c.frame_id, sequence.frame_id) for c in checked):
-            return None
-        for candidate in candidates[len(checked) :]:
-            if evidence.same_place(candidate.frame_id, sequence.frame_id):
-                return candidate
-        frame = repo.frames_by_id(session, frame_ids=[sequence.frame_id]).get(sequence.frame_id)
-        if frame is None or evidence.sequence_similarity is None:
-            return None
-        frames[frame.id] = frame
-        return Candidate(
-            frame.id, names[frame.submap_id], frame.robot_id, evidence.sequence_similarity
         )
 
     def _stay(

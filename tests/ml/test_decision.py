@@ -177,7 +177,7 @@ def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
 def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:
     """Below the sequence part's centre a sequence argues for no place, so the answer stays
     with the best single frame; an uninformative sequence (no rival place) names none."""
-    from service.app.decision import names_the_place, place_first
+    from service.app.sequence_place import names_the_place, place_first
     from service.app.results import Candidate, SequenceAnswer
     from service.ml.decision import CENTRES
 

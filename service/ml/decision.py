@@ -8,7 +8,8 @@ service already computes for the best candidate (after verification has re-ranke
 - ``inlier_ratio``: inliers / tentative matches;
 - ``rival``: its inliers over those of the best verified candidate of another place (log
   ratio): a look-alike elsewhere that verifies as well means the geometry cannot tell them
-  apart;
+  apart; on a calibrated version only when one of the two reaches the verification minimum
+  (below it on both sides the inliers are noise);
 - ``score``: its calibrated score minus ``log10(frames)`` (the best of N impostors is N times
   likelier to look this alike), only on a calibrated model version;
 - ``sequence``: the robot's sequence margin over its best rival place, when a robot streams
@@ -158,6 +159,8 @@ def decide_loop(
     if evidence is None:
         return Decision(None, threshold, False, reason="the atlas has no frame to match")
     parts = evidence.parts()
+    if "rival" in parts and not _either_verified(evidence, min_inliers):
+        del parts["rival"]
     terms = {name: round(COEFFICIENTS[name] * (v - CENTRES[name]), 4) for name, v in parts.items()}
     p = probability(parts)
     reasons: list[str] = []
@@ -205,6 +208,18 @@ def decide_loop(
         failed,
         "; ".join(reasons) if reasons else None,
     )
+
+
+def _either_verified(evidence: Evidence, min_inliers: int | None) -> bool:
+    """Whether the match or its rival reaches the verification minimum, on a calibrated
+    version (whose minimum is fitted as the inliers the atlas's hard impostors reach): between
+    two frames that both fail it (0 against 9 inliers across seasons at 64x32 px) the inliers
+    are noise, and their ratio says nothing about which place is the right one. Before
+    calibration the minimum is the matcher's default, not the atlas's noise level, and a small
+    atlas's right answers verify below it (the README's ten frames: 28 to 42 inliers)."""
+    if min_inliers is None or evidence.score_excess is None:
+        return True
+    return max(evidence.inliers or 0, evidence.rival_inliers or 0) >= min_inliers
 
 
 def _clip(name: str, value: float) -> float:

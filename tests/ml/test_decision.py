@@ -177,8 +177,8 @@ def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
 def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:
     """Below the sequence part's centre a sequence argues for no place, so the answer stays
     with the best single frame; an uninformative sequence (no rival place) names none."""
-    from service.app.sequence_place import names_the_place, place_first
     from service.app.results import Candidate, SequenceAnswer
+    from service.app.sequence_place import names_the_place, place_first
     from service.ml.decision import CENTRES
 
     def sequence(margin: float, rival: int | None = 9) -> SequenceAnswer:
@@ -189,3 +189,20 @@ def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:
     assert not names_the_place(sequence(9.0, rival=None))
     a, b, c = (Candidate(i, "s", "r", 0.5) for i in (1, 2, 3))
     assert [x.frame_id for x in place_first([a, b, c], c)] == [3, 1, 2]
+
+
+def test_between_two_unverified_frames_the_rival_part_says_nothing() -> None:
+    """On a calibrated version, a match and a rival both below the atlas's minimum inliers
+    (cohog200's first wrong answer: 21 inliers four places off, beside a rival with 3) carry
+    no rival part; one verified frame on either side keeps it, and before calibration (the
+    matcher's default minimum, not the atlas's noise level) it is kept as well."""
+    noise = Evidence(inliers=21, inlier_ratio=1.0, rival_inliers=3, score_excess=0.5, frames=200)
+    assert "rival" not in decide_loop(noise, min_inliers=44).parts
+    verified = Evidence(inliers=60, inlier_ratio=1.0, rival_inliers=3, score_excess=0.5, frames=200)
+    assert "rival" in decide_loop(verified, min_inliers=44).parts
+    outverified = Evidence(
+        inliers=5, inlier_ratio=1.0, rival_inliers=50, score_excess=0.5, frames=200
+    )
+    assert decide_loop(outverified, min_inliers=44).parts["rival"] < 0
+    uncalibrated = Evidence(inliers=21, inlier_ratio=1.0, rival_inliers=3, frames=10)
+    assert "rival" in decide_loop(uncalibrated, min_inliers=44).parts

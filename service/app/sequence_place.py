@@ -74,11 +74,9 @@ def sequence_place(
     sequence = naming_sequence(evidence)
     if evidence is None or sequence is None:
         return None
-    if any(evidence.same_place(c.frame_id, sequence.frame_id) for c in checked):
-        return None
-    for candidate in candidates[len(checked) :]:
+    for i, candidate in enumerate(candidates):
         if evidence.same_place(candidate.frame_id, sequence.frame_id):
-            return candidate
+            return None if i < len(checked) else candidate
     frame = repo.frames_by_id(session, frame_ids=[sequence.frame_id]).get(sequence.frame_id)
     if frame is None or evidence.sequence_similarity is None:
         return None

@@ -190,7 +190,14 @@ class DecisionOut(BaseModel):
         description="The probability a loop needs (LOOPNET_LOOP_PROBABILITY_MIN)."
     )
     passed: bool = Field(
-        description="loop_probability reaches the threshold and the match is verified."
+        description="loop_probability reaches the threshold and the answer is closable."
+    )
+    closable: bool = Field(
+        False,
+        description="The checks no probability threshold overrides pass: the match is verified "
+        "and, on a calibrated atlas, no less rare than the best of its impostors. A closable "
+        "answer below the threshold would be a loop at a lower LOOPNET_LOOP_PROBABILITY_MIN; "
+        "one that is not closable never would.",
     )
     parts: dict[str, float] = Field(
         description="The value of each part the answer has: inliers (log(1 + inliers) of the "

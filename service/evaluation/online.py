@@ -30,6 +30,7 @@ from service.evaluation.metrics import precision_recall, summary
 from service.evaluation.online_features import trajectory_local, trajectory_vectors
 from service.evaluation.online_report import write_report
 from service.evaluation.online_served import (
+    SERVED_SWEEP,
     SWEEPS,
     served_decisions,
     served_observations,
@@ -294,9 +295,11 @@ def _served_row(
     length: int,
     adapt_after_pairs: int = 0,
 ) -> dict[str, Any]:
-    """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept over the loop
-    probability by :func:`replay` (k=1, and with the protocol's consistency; ``sweeps`` adds
-    the same over the decision's logit), plus the operating point at the defaults and the jobs run during the replay."""
+    """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept by
+    :func:`replay` (k=1, and with the protocol's consistency) over the decision's logit among
+    the answers the service could close (``sweeps`` adds the same over every answer, by
+    probability and by logit), plus the operating point at the defaults and the jobs run
+    during the replay."""
     trajectory = config.trajectory
     features = trajectory_vectors(trajectory, pipeline, config.cache_dir)
     local = trajectory_local(trajectory, pipeline, config.cache_dir)
@@ -316,7 +319,7 @@ def _served_row(
     for score in SWEEPS:
         observations = [Observation(*a) for a in served_observations(served, score)]
         swept = replay(trajectory, vectors, _settings(config, length), observations)
-        if score == "decision.loop_probability":
+        if score == SERVED_SWEEP:
             row.update(swept)
         row.setdefault("sweeps", {})[score] = swept["decisions"]
     row["latency_note"] = (

@@ -71,13 +71,15 @@ class JobRun:
 @dataclass
 class ServedReplay:
     """Per frame, in order: the frame index answered first (-1: none), its loop probability
-    (0 without a decision) and the decision's logit (-inf without one), status, decision parts (NaN: absent), sequence length used, the
-    model version that answered, the frames of its current stay left out and the call's
-    milliseconds; then the jobs run meanwhile."""
+    (0 without a decision), the decision's logit (-inf without one) and the same for closable
+    answers only (-inf for one no threshold makes a loop), status, decision parts (NaN:
+    absent), sequence length used, the model version that answered, the frames of its current
+    stay left out and the call's milliseconds; then the jobs run meanwhile."""
 
     references: list[int] = field(default_factory=list)
     probability: list[float] = field(default_factory=list)
     logits: list[float] = field(default_factory=list)
+    closable_logits: list[float] = field(default_factory=list)
     status: list[str] = field(default_factory=list)
     parts: list[list[float]] = field(default_factory=list)
     lengths: list[int] = field(default_factory=list)
@@ -138,6 +140,7 @@ def served_replay(
             out.references.append(index_of.get(first[0], -1) if first else -1)
             out.probability.append(loop_probability(answer))
             out.logits.append(decision_logit(answer))
+            out.closable_logits.append(decision_logit(answer, closable_only=True))
             out.status.append(answer.status)
             out.parts.append(decision_parts(answer))
             out.lengths.append(answer.sequence.length if answer.sequence is not None else 1)
@@ -171,11 +174,18 @@ def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
     )
 
 
-SWEEPS = {"decision.loop_probability": "probability", "decision logit": "logits"}
+# the row's own sweep first: the decision's logit (ordered as loop_probability, which ties at
+# 1.0 once rounded) over the answers the service could close; then over every answer
+SERVED_SWEEP = "decision logit, closable answers"
+SWEEPS = {
+    SERVED_SWEEP: "closable_logits",
+    "decision.loop_probability": "probability",
+    "decision logit": "logits",
+}
 
 
 def served_observations(
-    served: ServedReplay, score: str = "decision.loop_probability"
+    served: ServedReplay, score: str = SERVED_SWEEP
 ) -> list[tuple[int, float, int, float]]:
     """``(reference, score, length, ms)`` per frame, the retrieval rows' shape, so one sweep
     (:func:`service.evaluation.online.replay`) scores both; no answer: -inf. ``score``: one of
@@ -197,7 +207,7 @@ def served_decisions(
     )
     answerable = trajectory.answerable(exclude_recent)
     return {
-        "score": "decision.loop_probability",
+        "score": SERVED_SWEEP,
         "operating_point": loop_counts(served.status, right, answerable, served.threshold),
         "verification": served.verification,
         "jobs": [asdict(job) for job in served.jobs],
@@ -206,6 +216,7 @@ def served_decisions(
             "reference": served.references,
             "loop_probability": np.round(served.probability, 4).tolist(),
             "logit": np.round(served.logits, 3).tolist(),
+            "closable": np.isfinite(served.closable_logits).astype(int).tolist(),
             "status": served.status,
             "right": right.astype(int).tolist(),
             "model_version": served.versions,

@@ -41,6 +41,17 @@ def methods_table(methods: Sequence[MethodResult], tolerance: str) -> str:
         )
     lines.append("")
     lines.append(f"Tolerance: {tolerance}. Frame accuracy is Recall@1.")
+    alone = [
+        f"{m.label} {_fmt(m.details['recall_at_100_precision_probability_alone'])}"
+        for m in methods
+        if "recall_at_100_precision_probability_alone" in m.details
+    ]
+    if alone:
+        lines.append(
+            "Served rows sweep loop_probability over the answers the service could close "
+            "(decision.closable: a verified match, no less rare than the atlas's impostors); "
+            "over the probability alone, every answer swept, R@100%P is: " + "; ".join(alone) + "."
+        )
     return "\n".join(lines)
 
 

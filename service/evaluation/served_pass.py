@@ -1,7 +1,10 @@
 """The ``<method>-served`` row: every query answered as ``POST /query`` answers it at the
 service's defaults (verification with the default matcher and count, the calibrated score
 once the atlas is calibrated, the loop decision), and its PR sweep over the one number the
-service thresholds, ``decision.loop_probability``.
+service thresholds, ``decision.loop_probability``, among the answers the service could close
+(``decision.closable``: no threshold makes an unverified match a loop, so the sweep never
+accepts one). The sweep over the probability alone, every answer in it (the figure before
+stop 38), stays in the row's details.
 
 The pass runs in the service pass's temporary atlas after its calibration (when the dataset
 is large enough to calibrate); verification reads the references' keypoints back from the
@@ -25,7 +28,7 @@ from service.app.results import QueryResult
 from service.app.verify import CandidateVerification, verification_config
 from service.config import Settings
 from service.evaluation.datasets import Dataset
-from service.evaluation.metrics import Ranking, correct_matrix
+from service.evaluation.metrics import Ranking, correct_matrix, precision_recall
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.jobs.retraining import JobRunner
 from service.ml.decision import logit, probability
@@ -65,6 +68,8 @@ class ServedAnswers:
     # per query, its answer's candidates in served order: (reference, similarity, score,
     # inliers, inlier ratio, zoom), NaN where absent, to study the re-rank offline
     candidates: list[list[list[float]]] = field(default_factory=list)
+    # per query, the probability whether or not the answer is closable (0: no decision)
+    probability_alone: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -75,6 +80,7 @@ class ServedAnswers:
             parts=self.parts[keep],
             candidates=[self.candidates[i] for i in keep] if self.candidates else [],
             query_ms=self.query_ms[keep],
+            probability_alone=self.probability_alone[keep],
         )
 
 
@@ -118,7 +124,7 @@ def served_answers(
     """
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
-    indices, scores, status, parts, query_ms = [], [], [], [], []
+    indices, scores, status, parts, query_ms, alone = [], [], [], [], [], []
     candidates: list[list[list[float]]] = []
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
@@ -145,6 +151,7 @@ def served_answers(
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
             p = swept_probability(answer)
+            alone.append(swept_probability(answer, closable_only=False))
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
@@ -159,6 +166,7 @@ def served_answers(
         {"matcher": config.matcher, "top": config.top, "min_inliers": config.min_inliers},
         sequence_length,
         candidates,
+        np.array(alone, np.float64),
     )
 
 
@@ -202,22 +210,29 @@ def loop_probability(answer: QueryResult) -> float:
     return float(decision.loop_probability)
 
 
-def swept_probability(answer: QueryResult) -> float:
+def swept_probability(answer: QueryResult, closable_only: bool = True) -> float:
     """``loop_probability`` as the decision computes it, before its rounding to 6 decimals
     (which ties most verified sequence answers at 1.0, so a sweep could not order them):
-    the same order and threshold, in [0, 1]; 0 without a decision."""
+    the same order and threshold, in [0, 1]; 0 without a decision. ``closable_only``: -inf
+    for an answer no threshold makes a loop (no decision, or ``decision.closable`` false), so a sweep
+    accepts it only where it accepts everything."""
     decision = answer.decision
     if decision is None or decision.loop_probability is None:
-        return 0.0
+        return -np.inf if closable_only else 0.0
+    if closable_only and not decision.closable:
+        return -np.inf
     return probability(decision.parts)
 
 
-def decision_logit(answer: QueryResult) -> float:
-    """The decision model's logit of the answer's parts (-inf without a decision): ordered as
+def decision_logit(answer: QueryResult, closable_only: bool = False) -> float:
+    """The decision model's logit of the answer's parts (-inf without a decision, and with
+    ``closable_only`` for an answer that is not ``decision.closable``): ordered as
     ``loop_probability`` but neither rounded nor saturated at 1.0, so a sweep can still order
     the answers the rounded probability ties."""
     decision = answer.decision
     if decision is None or decision.loop_probability is None:
+        return -np.inf
+    if closable_only and not decision.closable:
         return -np.inf
     return logit(decision.parts)
 
@@ -255,18 +270,19 @@ def served_method(
         submap_of,
         query_ms=served.query_ms,
     )
+    positives = [q.positives for q in dataset.queries]
+    right = correct_matrix(served.ranking, positives)[:, 0]
+    alone = precision_recall(served.probability_alone, right, sum(1 for p in positives if p))
     method.details = {
         "operating_point": operating_point(served, dataset),
+        "recall_at_100_precision_probability_alone": alone.recall_at_full_precision,
         "verification": served.verification,
         "parts": PARTS,
         "per_query_parts": np.round(served.parts, 4).tolist(),
         "per_query_status": served.status,
         "per_query_candidates": served.candidates,
-        "per_query_right": correct_matrix(served.ranking, [q.positives for q in dataset.queries])[
-            :, 0
-        ]
-        .astype(int)
-        .tolist(),
+        "per_query_closable": np.isfinite(served.ranking.scores[:, 0]).astype(int).tolist(),
+        "per_query_right": right.astype(int).tolist(),
     }
     return method
 

@@ -113,7 +113,11 @@ class Decision:
         loop_probability: P(same place) of the best candidate, in [0, 1]; None only with no
             candidate at all (``reason`` says so).
         threshold: the probability a loop needs.
-        passed: ``loop_probability >= threshold``.
+        passed: ``loop_probability >= threshold`` and ``closable``.
+        closable: the checks no probability threshold overrides pass (the match is verified,
+            and on a calibrated atlas no less rare than the best of its impostors): some
+            threshold would make it a loop. A sweep of the threshold, as served, moves only the
+            closable answers.
         parts: each present part's value (log inliers, ratio, log inlier ratio over the rival,
             score excess, sequence margin).
         contributions: each present part's term in the logit (positive: for a loop).
@@ -125,6 +129,7 @@ class Decision:
     loop_probability: float | None
     threshold: float
     passed: bool
+    closable: bool = False
     parts: dict[str, float] = field(default_factory=dict)
     contributions: dict[str, float] = field(default_factory=dict)
     failed: str | None = None
@@ -187,7 +192,8 @@ def decide_loop(
             f"the match's score is below log10({evidence.frames}): the best of the atlas's "
             "impostors is as similar"
         )
-    passed = geometry_ok and rare and p >= threshold
+    closable = geometry_ok and rare
+    passed = closable and p >= threshold
     failed = None
     if not passed:
         negative = {name: t for name, t in terms.items() if t < 0}
@@ -203,6 +209,7 @@ def decide_loop(
         round(p, 6),
         threshold,
         passed,
+        closable,
         {name: round(v, 4) for name, v in parts.items()},
         terms,
         failed,

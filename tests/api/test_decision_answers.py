@@ -45,7 +45,7 @@ def test_a_small_atlas_answers_with_its_reason(client: TestClient) -> None:
     decision = same["decision"]
     assert same["verification"]["verified_candidates"] == 3  # all of a small atlas
     assert decision["loop_probability"] is not None and decision["loop_probability"] > 0.98
-    assert same["status"] == "loop" and decision["passed"] is True
+    assert same["status"] == "loop" and decision["passed"] is True and decision["closable"] is True
     assert "not calibrated yet" in decision["reason"]  # why the score part is missing
     assert set(decision["contributions"]) >= {"inliers", "inlier_ratio"}
 

@@ -14,6 +14,7 @@ from service.evaluation.feature_cache import cache_path
 from service.evaluation.loop_ground_truth import trajectory_from_traversals
 from service.evaluation.online import OnlineConfig, run_online
 from service.evaluation.online_features import trajectory_cache
+from service.evaluation.online_served import SERVED_SWEEP
 from service.evaluation.served_pass import PARTS
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import resolve_preset
@@ -50,7 +51,7 @@ def test_served_replay_calibrates_at_the_milestone_and_answers_calibrated(tmp_pa
     retrieval, served = report["rows"]
     assert retrieval["method"] == "loopnet-xfeat-alpha0.7" and "operating_point" not in retrieval
     assert served["method"] == "loopnet-xfeat-served"
-    assert served["score"] == "decision.loop_probability" and served["settings"]["length"] == 3
+    assert served["score"] == SERVED_SWEEP and served["settings"]["length"] == 3
 
     [job] = served["jobs"]
     assert job["kind"] == "calibrate" and job["milestone"] == 16 and job["frame"] == 15
@@ -76,9 +77,13 @@ def test_served_replay_calibrates_at_the_milestone_and_answers_calibrated(tmp_pa
     # every night frame (the first run) has no loop partner: none of them is answered right
     assert not right[:10].any() and served["answerable"] == 9
     sweeps = served["sweeps"]
-    assert set(sweeps) == {"decision.loop_probability", "decision logit"}
-    assert sweeps["decision.loop_probability"] == served["decisions"]
+    assert set(sweeps) == {SERVED_SWEEP, "decision.loop_probability", "decision logit"}
+    assert sweeps[SERVED_SWEEP] == served["decisions"]
+    # every loop was closable; the row's sweep credits no answer that is not
+    closable = np.array(frames["closable"], bool)
+    assert closable[status == "loop"].all()
     # the logit orders the answers as the probability does: the same best matches, both sweeps
+    # over every answer
     for k in ("k=1", "k=3"):
         assert (
             sweeps["decision logit"][k]["best_match_right"]

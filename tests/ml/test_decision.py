@@ -29,6 +29,24 @@ def test_look_alike_with_a_high_score_but_no_geometry_is_refused() -> None:
     assert decision.reason is not None and "6 inliers, below 44" in decision.reason
 
 
+def test_closable_says_whether_any_threshold_could_make_the_answer_a_loop() -> None:
+    """A threshold on the probability moves only closable answers: a verified match no less
+    rare than the impostors; an unverified match or a common one stays out at any threshold,
+    whatever its probability."""
+    verified = Evidence(inliers=60, inlier_ratio=0.5, score_excess=0.5, frames=500)
+    low = decide_loop(verified, min_inliers=44)
+    assert low.closable and not low.passed  # below the default threshold, closable at a lower
+    assert decide_loop(verified, min_inliers=44, threshold=0.5).passed
+    unverified = Evidence(inliers=40, inlier_ratio=1.0, score_excess=8.0, frames=500)
+    refused = decide_loop(unverified, min_inliers=44, threshold=0.5)
+    assert refused.loop_probability is not None and refused.loop_probability > 0.5
+    assert not refused.closable and not refused.passed
+    common = Evidence(inliers=300, inlier_ratio=0.9, score_excess=-0.1, frames=500)
+    assert not decide_loop(common, min_inliers=44, threshold=0.5).closable
+    assert not decide_loop(verified, verify=False, min_inliers=44, threshold=0.0).closable
+    assert not decide_loop(None).closable
+
+
 def test_a_rival_place_that_verifies_as_well_holds_the_loop_back() -> None:
     alone = Evidence(inliers=90, inlier_ratio=0.7, rival_inliers=5, score_excess=3.0, frames=500)
     rivalled = Evidence(

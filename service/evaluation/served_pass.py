@@ -2,8 +2,8 @@
 service's defaults (verification with the default matcher and count, the calibrated score
 once the atlas is calibrated, the loop decision), and its PR sweep over the one number the
 service thresholds, ``decision.loop_probability``, among the answers the service could close
-(``decision.closable``: no threshold makes an unverified match a loop, so the sweep never
-accepts one). The sweep over the probability alone, every answer in it (the figure before
+(``decision.closable``: no threshold makes an unverified match a loop, so the sweep accepts
+one only at 0, with every answer). The sweep over the probability alone, every answer in it (the figure before
 stop 38), stays in the row's details.
 
 The pass runs in the service pass's temporary atlas after its calibration (when the dataset
@@ -31,7 +31,7 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, precision_recall
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.jobs.retraining import JobRunner
-from service.ml.decision import logit, probability
+from service.ml.decision import Decision, logit, probability
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import jobs
 from service.storage.models import Job
@@ -54,7 +54,8 @@ QUERY_ROBOT, QUERY_SUBMAP = "queries", "queries"
 
 @dataclass
 class ServedAnswers:
-    """Per query: the served ranking (scores: the loop probability in column 0), the status,
+    """Per query: the served ranking (scores: the loop probability in column 0, 0 where the
+    answer is not closable), the status,
     the decision's parts (NaN: absent) and the milliseconds of heads + search + verification
     + decision."""
 
@@ -70,6 +71,7 @@ class ServedAnswers:
     candidates: list[list[list[float]]] = field(default_factory=list)
     # per query, the probability whether or not the answer is closable (0: no decision)
     probability_alone: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    closable: list[bool] = field(default_factory=list)  # per query, decision.closable
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -81,6 +83,7 @@ class ServedAnswers:
             candidates=[self.candidates[i] for i in keep] if self.candidates else [],
             query_ms=self.query_ms[keep],
             probability_alone=self.probability_alone[keep],
+            closable=[self.closable[i] for i in keep],
         )
 
 
@@ -125,6 +128,7 @@ def served_answers(
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
     indices, scores, status, parts, query_ms, alone = [], [], [], [], [], []
+    closable: list[bool] = []
     candidates: list[list[list[float]]] = []
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
@@ -152,6 +156,7 @@ def served_answers(
             pad = k - len(found)
             p = swept_probability(answer)
             alone.append(swept_probability(answer, closable_only=False))
+            closable.append(swept_decision(answer, closable_only=True) is not None)
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
@@ -167,6 +172,7 @@ def served_answers(
         sequence_length,
         candidates,
         np.array(alone, np.float64),
+        closable,
     )
 
 
@@ -213,15 +219,11 @@ def loop_probability(answer: QueryResult) -> float:
 def swept_probability(answer: QueryResult, closable_only: bool = True) -> float:
     """``loop_probability`` as the decision computes it, before its rounding to 6 decimals
     (which ties most verified sequence answers at 1.0, so a sweep could not order them):
-    the same order and threshold, in [0, 1]; 0 without a decision. ``closable_only``: -inf
-    for an answer no threshold makes a loop (no decision, or ``decision.closable`` false), so a sweep
-    accepts it only where it accepts everything."""
-    decision = answer.decision
-    if decision is None or decision.loop_probability is None:
-        return -np.inf if closable_only else 0.0
-    if closable_only and not decision.closable:
-        return -np.inf
-    return probability(decision.parts)
+    the same order and threshold, in [0, 1]; 0 without a decision, and with ``closable_only``
+    for an answer no threshold makes a loop (:func:`swept_decision`), so a sweep accepts it
+    only at 0, where it accepts everything."""
+    decision = swept_decision(answer, closable_only)
+    return 0.0 if decision is None else probability(decision.parts)
 
 
 def decision_logit(answer: QueryResult, closable_only: bool = False) -> float:
@@ -229,12 +231,19 @@ def decision_logit(answer: QueryResult, closable_only: bool = False) -> float:
     ``closable_only`` for an answer that is not ``decision.closable``): ordered as
     ``loop_probability`` but neither rounded nor saturated at 1.0, so a sweep can still order
     the answers the rounded probability ties."""
+    decision = swept_decision(answer, closable_only)
+    return -np.inf if decision is None else logit(decision.parts)
+
+
+def swept_decision(answer: QueryResult, closable_only: bool) -> Decision | None:
+    """The answer's decision when a sweep may accept it: None without a probability, or with
+    ``closable_only`` when the decision is not ``closable``."""
     decision = answer.decision
     if decision is None or decision.loop_probability is None:
-        return -np.inf
+        return None
     if closable_only and not decision.closable:
-        return -np.inf
-    return logit(decision.parts)
+        return None
+    return decision
 
 
 def decision_parts(answer: QueryResult) -> list[float]:
@@ -272,26 +281,20 @@ def served_method(
     )
     positives = [q.positives for q in dataset.queries]
     right = correct_matrix(served.ranking, positives)[:, 0]
-    alone = precision_recall(served.probability_alone, right, sum(1 for p in positives if p))
+    answerable = sum(1 for p in positives if p)
+    alone = precision_recall(served.probability_alone, right, answerable)
     method.details = {
-        "operating_point": operating_point(served, dataset),
+        "operating_point": loop_counts(served.status, right, answerable, served.threshold),
         "recall_at_100_precision_probability_alone": alone.recall_at_full_precision,
         "verification": served.verification,
         "parts": PARTS,
         "per_query_parts": np.round(served.parts, 4).tolist(),
         "per_query_status": served.status,
         "per_query_candidates": served.candidates,
-        "per_query_closable": np.isfinite(served.ranking.scores[:, 0]).astype(int).tolist(),
+        "per_query_closable": [int(c) for c in served.closable],
         "per_query_right": right.astype(int).tolist(),
     }
     return method
-
-
-def operating_point(served: ServedAnswers, dataset: Dataset) -> dict[str, float | int]:
-    """What the service answers at its defaults (:func:`loop_counts`), per query."""
-    positives = [q.positives for q in dataset.queries]
-    right = correct_matrix(served.ranking, positives)[:, 0]
-    return loop_counts(served.status, right, sum(1 for p in positives if p), served.threshold)
 
 
 def loop_counts(

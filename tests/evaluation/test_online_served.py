@@ -79,7 +79,7 @@ def test_served_replay_calibrates_at_the_milestone_and_answers_calibrated(tmp_pa
     sweeps = served["sweeps"]
     assert set(sweeps) == {SERVED_SWEEP, "decision.loop_probability", "decision logit"}
     assert sweeps[SERVED_SWEEP] == served["decisions"]
-    # every loop was closable; the row's sweep credits no answer that is not
+    # every loop the service closed was closable
     closable = np.array(frames["closable"], bool)
     assert closable[status == "loop"].all()
     # the logit orders the answers as the probability does: the same best matches, both sweeps

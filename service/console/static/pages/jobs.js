@@ -35,7 +35,7 @@ export default async function render(container) {
       ["Status", (j) => h("span", { class: `badge ${j.status === "succeeded" ? "ok" : j.status === "failed" ? "bad" : ACTIVE.has(j.status) ? "warn" : ""}`, "data-testid": "job-status" }, j.status)],
       ["Progress", (j) => h("div", {}, h("div", { class: "progress" }, h("div", { style: `width:${j.progress}%` })),
         h("span", { class: "muted", "data-testid": "job-progress" }, `${Math.round(j.progress)}%`))],
-      ["Message", (j) => j.message],
+      ["Message", (j) => h("span", { "data-testid": "job-message" }, j.message || "")],
       ["Version", (j) => (j.model_version ? `v${j.model_version}` : "–")],
       ["Created", (j) => fmt.time(j.created_at)],
       ["", (j) => (ACTIVE.has(j.status) ? h("button", { class: "danger", "data-testid": "cancel-job", onclick: act(() => post(`/atlases/${enc}/jobs/${j.id}/cancel`)) }, "Cancel") : "")],

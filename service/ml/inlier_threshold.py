@@ -37,6 +37,8 @@ class InlierThreshold:
     impostor_max: int
     accepted_impostors: int  # of them at or above the minimum
     one_stop_pairs: int = 0  # pairs of one robot's frames left out: it never left the place
+    impostor_median: float = 0.0
+    impostor_highest: tuple[int, ...] = ()  # the ten most inliers, for an operator asking why
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -146,4 +148,6 @@ def fit_inlier_threshold(
         impostor_max=int(values.max()),
         accepted_impostors=int((values >= minimum).sum()),
         one_stop_pairs=one_stop_pairs,
+        impostor_median=float(np.median(values)),
+        impostor_highest=tuple(int(v) for v in np.sort(values)[::-1][:10]),
     )

@@ -49,6 +49,7 @@ def test_the_minimum_sits_just_above_the_impostors() -> None:
         == int(np.floor(np.quantile([3] * 95 + [30, 31, 32, 33, 60], 0.99))) + 1
     )
     assert threshold.impostor_max == 60 and threshold.accepted_impostors == 1
+    assert threshold.impostor_highest[:3] == (60, 33, 32) and threshold.impostor_median == 3
     assert fit_inlier_threshold("lightglue", [0, 1, 2]).min_inliers == FLOOR
     with pytest.raises(ValueError):
         fit_inlier_threshold("mnn", [])

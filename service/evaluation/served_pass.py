@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from service.app import model_versions
 from service.app.catalog import AtlasService
 from service.app.filters import QueryFilter
 from service.app.ingest import FrameFields
@@ -34,6 +35,7 @@ from service.jobs.retraining import JobRunner
 from service.ml.decision import Decision, logit, probability
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import jobs
+from service.storage import repository as repo
 from service.storage.models import Job
 
 PARTS = ("inliers", "inlier_ratio", "rival", "score", "sequence")
@@ -168,12 +170,28 @@ def served_answers(
         np.array(parts, np.float64).reshape(len(parts), len(PARTS)),
         np.array(query_ms, np.float64),
         settings.loop_probability_min,
-        {"matcher": config.matcher, "top": config.top, "min_inliers": config.min_inliers},
+        {
+            "matcher": config.matcher,
+            "top": config.top,
+            "min_inliers": config.min_inliers,  # the matcher's default, before calibration
+            "fitted_min_inliers": fitted_min_inliers(service, atlas),
+        },
         sequence_length,
         candidates,
         np.array(alone, np.float64),
         closable,
     )
+
+
+def fitted_min_inliers(service: AtlasService, atlas: str) -> dict[str, Any] | None:
+    """The active version's calibrated minimum inliers and the impostors it came from (None
+    before the atlas's first calibration)."""
+    with service.sessions() as session:
+        atlas_id = repo.get_atlas(session, name=atlas).id
+        version = repo.active_model_version(session, atlas_id=atlas_id)
+        calibration = model_versions.VersionConfig.of(version).calibration or {}
+    fitted = calibration.get("min_inliers")
+    return dict(fitted) if fitted else None
 
 
 def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> list[list[float]]:
@@ -197,10 +215,15 @@ def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> l
 
 
 def answered_frames(answer: QueryResult) -> list[int]:
-    """The frames an answer names, the one to act on first: the loop's frame, else the
-    robot's sequence's aligned frame, else the match; then the other candidates."""
+    """The frames an answer names, the one to act on first: the loop's frame; else the match
+    when the decision could close it (the swept probability is the match's: a lower threshold
+    makes it the loop); else the robot's sequence's aligned frame, else the match; then the
+    other candidates."""
     ids = [c.frame_id for c in answer.candidates]
     first = answer.loop_frame_id
+    decision = answer.decision
+    if first is None and answer.match is not None and decision is not None and decision.closable:
+        first = answer.match.frame_id
     if first is None and answer.sequence is not None:
         first = answer.sequence.frame_id
     if first is None:

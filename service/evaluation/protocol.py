@@ -90,12 +90,17 @@ def evaluate_ranking(
     *,
     query_ms: Sequence[float] | np.ndarray = (),
     details: dict[str, Any] | None = None,
+    eligible: np.ndarray | None = None,
 ) -> MethodResult:
+    """``eligible``: per query, whether any threshold may accept its answer (None: all); the
+    PR curve sweeps those only, the others are never accepted (a served answer that is not
+    closable) and count only in the recall's denominator."""
     positives = [q.positives for q in dataset.queries]
     answerable = sum(1 for p in positives if p)
     recall = recall_at_k(ranking, positives, RECALL_KS)
     best_correct = correct_matrix(ranking, positives)[:, 0]
-    curve = precision_recall(ranking.scores[:, 0], best_correct, answerable)
+    swept = np.ones(len(best_correct), bool) if eligible is None else np.asarray(eligible, bool)
+    curve = precision_recall(ranking.scores[swept, 0], best_correct[swept], answerable)
     return MethodResult(
         name=name,
         label=label,

@@ -2,9 +2,9 @@
 service's defaults (verification with the default matcher and count, the calibrated score
 once the atlas is calibrated, the loop decision), and its PR sweep over the one number the
 service thresholds, ``decision.loop_probability``, among the answers the service could close
-(``decision.closable``: no threshold makes an unverified match a loop, so the sweep accepts
-one only at 0, with every answer). The sweep over the probability alone, every answer in it (the figure before
-stop 38), stays in the row's details.
+(``decision.closable``: no threshold makes an unverified match a loop, so the sweep never
+accepts the others; they count only in the recall's denominator). The sweep over the
+probability alone, every answer in it (the figure before stop 38), stays in the row's details.
 
 The pass runs in the service pass's temporary atlas after its calibration (when the dataset
 is large enough to calibrate); verification reads the references' keypoints back from the
@@ -89,14 +89,17 @@ class ServedAnswers:
         )
 
 
+def at_served_defaults(settings: Settings) -> Settings:
+    """``settings`` with :data:`DEFAULTS` at the service's defaults."""
+    defaults = Settings(data_dir=settings.data_dir)
+    return settings.model_copy(update={name: getattr(defaults, name) for name in DEFAULTS})
+
+
 @contextmanager
 def served_settings(service: AtlasService, extractor: str) -> Iterator[Settings]:
     """The service's queries (and observations) with :data:`DEFAULTS` at their defaults while
     the block runs (the harness's atlas turns verification off); the settings in force."""
-    defaults = Settings(data_dir=service.settings.data_dir)
-    settings = service.settings.model_copy(
-        update={name: getattr(defaults, name) for name in DEFAULTS}
-    )
+    settings = at_served_defaults(service.settings)
     queries_api = service.queries
     before = (queries_api.verification, queries_api.settings)
     queries_api.verification = CandidateVerification(
@@ -243,8 +246,8 @@ def swept_probability(answer: QueryResult, closable_only: bool = True) -> float:
     """``loop_probability`` as the decision computes it, before its rounding to 6 decimals
     (which ties most verified sequence answers at 1.0, so a sweep could not order them):
     the same order and threshold, in [0, 1]; 0 without a decision, and with ``closable_only``
-    for an answer no threshold makes a loop (:func:`swept_decision`), so a sweep accepts it
-    only at 0, where it accepts everything."""
+    for an answer no threshold makes a loop (:func:`swept_decision`; the served row's sweep
+    leaves those out)."""
     decision = swept_decision(answer, closable_only)
     return 0.0 if decision is None else probability(decision.parts)
 
@@ -292,7 +295,8 @@ def served_method(
     dataset: Dataset,
     submap_of: Sequence[int],
 ) -> MethodResult:
-    """The served row: PR over loop_probability and the operating point at the defaults."""
+    """The served row: PR over the loop_probability of closable answers (no threshold makes
+    the others loops) and the operating point at the defaults."""
     method = evaluate_ranking(
         name,
         label,
@@ -301,6 +305,7 @@ def served_method(
         dataset,
         submap_of,
         query_ms=served.query_ms,
+        eligible=np.asarray(served.closable, bool),
     )
     positives = [q.positives for q in dataset.queries]
     right = correct_matrix(served.ranking, positives)[:, 0]
@@ -342,10 +347,11 @@ def loop_counts(
     }
 
 
-def run_job_now(service: AtlasService, job_id: int) -> Job:
-    """Run a queued job in this process as a worker would (the job runner's own code), then
-    bring the service's loaded atlases up to date; returns the finished job row."""
-    JobRunner(service.settings, service.sessions).run(job_id)
+def run_job_now(service: AtlasService, job_id: int, settings: Settings | None = None) -> Job:
+    """Run a queued job in this process as a worker would (the job runner's own code, with
+    ``settings``, default the service's), then bring the service's loaded atlases up to date;
+    returns the finished job row."""
+    JobRunner(settings or service.settings, service.sessions).run(job_id)
     with service.sessions() as session:
         job = jobs.get_job(session, job_id=job_id)
         session.expunge(job)

@@ -34,7 +34,13 @@ from service.evaluation.feature_cache import (
     file_stamp,
 )
 from service.evaluation.metrics import Ranking
-from service.evaluation.served_pass import ServedAnswers, as_stored, run_job_now, served_answers
+from service.evaluation.served_pass import (
+    ServedAnswers,
+    as_stored,
+    at_served_defaults,
+    run_job_now,
+    served_answers,
+)
 from service.ml.calibration import CalibrationInputs
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.pipeline import FeaturePipeline
@@ -313,11 +319,13 @@ def _calibrated_answers(
     params: dict[str, object],
 ) -> CalibratedAnswers:
     """Calibrate the atlas as the service does (a calibration job run by the job runner on the
-    stored references), then ask every query again through the service."""
+    stored references, with the served defaults: verification on, so the job fits the atlas's
+    minimum inliers as a served atlas's does), then ask every query again through the service
+    (the harness's own settings: retrieval only)."""
     with transaction(service.sessions) as session:
         atlas_id = repo.get_atlas(session, name=ATLAS).id
         job_id = jobs.create_job(session, atlas_id=atlas_id, kind="calibrate", params=params).id
-    job = run_job_now(service, job_id)
+    job = run_job_now(service, job_id, at_served_defaults(service.settings))
     if job.status != "succeeded":
         raise RuntimeError(f"the calibration job failed: {job.error}")
     metrics = dict(job.metrics)

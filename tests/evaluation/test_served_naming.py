@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
 from service.app.results import Candidate, QueryResult, SequenceAnswer, SubmapGuess
+from service.evaluation.dataset_model import Dataset, QueryFrame, ReferenceFrame
+from service.evaluation.metrics import Ranking
+from service.evaluation.protocol import evaluate_ranking
 from service.evaluation.served_pass import answered_frames
 from service.ml.decision import Decision
 
@@ -35,3 +42,15 @@ def test_an_answer_no_threshold_closes_names_the_sequences_place() -> None:
 
 def test_a_loop_names_its_frame() -> None:
     assert answered_frames(answer(closable=False, loop_frame=31))[0] == 31
+
+
+def test_a_served_sweep_never_accepts_an_answer_that_is_not_closable() -> None:
+    """Every answer names the right frame, but only two could be loops: R@100%P is 2 of 4."""
+    references = [ReferenceFrame(Path(f"r{i}.png"), str(i), i) for i in range(4)]
+    queries = [QueryFrame(Path(f"q{i}.png"), frozenset({i})) for i in range(4)]
+    dataset = Dataset("toy", "folders", Path("."), references, queries, "same frame")
+    ranking = Ranking(np.arange(4).reshape(4, 1), np.array([[0.99], [0.0], [0.7], [0.0]]))
+    closable = np.array([True, False, True, False])
+    swept = evaluate_ranking("m", "m", "served", ranking, dataset, [0] * 4, eligible=closable)
+    every = evaluate_ranking("m", "m", "served", ranking, dataset, [0] * 4)
+    assert swept.recall_at_full_precision == 0.5 and every.recall_at_full_precision == 1.0

@@ -57,7 +57,8 @@ QUERY_ROBOT, QUERY_SUBMAP = "queries", "queries"
 @dataclass
 class ServedAnswers:
     """Per query: the served ranking (scores: the loop probability in column 0, 0 where the
-    answer is not closable), the status,
+    answer is not closable, 1 where the robot's sequence passed: a loop at every threshold),
+    the status,
     the decision's parts (NaN: absent) and the milliseconds of heads + search + verification
     + decision."""
 
@@ -73,7 +74,9 @@ class ServedAnswers:
     candidates: list[list[list[float]]] = field(default_factory=list)
     # per query, the probability whether or not the answer is closable (0: no decision)
     probability_alone: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    closable: list[bool] = field(default_factory=list)  # per query, decision.closable
+    # per query, whether some threshold makes it a loop (decision.closable, or the sequence
+    # passed)
+    closable: list[bool] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -159,9 +162,11 @@ def served_answers(
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
-            p = swept_probability(answer)
+            # a loop on the sequence's own evidence is one whatever the probability's threshold
+            by_sequence = answer.sequence is not None and answer.sequence.passed
+            p = 1.0 if by_sequence else swept_probability(answer)
             alone.append(swept_probability(answer, closable_only=False))
-            closable.append(swept_decision(answer, closable_only=True) is not None)
+            closable.append(by_sequence or swept_decision(answer, closable_only=True) is not None)
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)

@@ -33,6 +33,7 @@ from service.evaluation.served_pass import (
     loop_counts,
     loop_probability,
     run_job_now,
+    swept_logit,
 )
 from service.ml.features import LocalFeatures
 from service.ml.pipeline import FeaturePipeline
@@ -72,7 +73,8 @@ class JobRun:
 class ServedReplay:
     """Per frame, in order: the frame index answered first (-1: none), its loop probability
     (0 without a decision), the decision's logit (-inf without one) and the same for closable
-    answers only (-inf for one no threshold makes a loop), status, decision parts (NaN:
+    answers only (-inf for one no threshold makes a loop, above every decision for a loop by
+    the robot's sequence: served_pass.swept_logit), status, decision parts (NaN:
     absent), sequence length used, the model version that answered, the frames of its current
     stay left out and the call's milliseconds; then the jobs run meanwhile."""
 
@@ -140,7 +142,7 @@ def served_replay(
             out.references.append(index_of.get(first[0], -1) if first else -1)
             out.probability.append(loop_probability(answer))
             out.logits.append(decision_logit(answer))
-            out.closable_logits.append(decision_logit(answer, closable_only=True))
+            out.closable_logits.append(swept_logit(answer))
             out.status.append(answer.status)
             out.parts.append(decision_parts(answer))
             out.lengths.append(answer.sequence.length if answer.sequence is not None else 1)
@@ -175,7 +177,8 @@ def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
 
 
 # the row's own sweep first: the decision's logit (ordered as loop_probability, which ties at
-# 1.0 once rounded) over the answers the service could close; then over every answer
+# 1.0 once rounded) over the answers the service could close (a loop by the robot's sequence at
+# every threshold); then over every answer
 SERVED_SWEEP = "decision logit, closable answers"
 SWEEPS = {
     SERVED_SWEEP: "closable_logits",

@@ -162,11 +162,9 @@ def served_answers(
             query_ms.append((time.perf_counter() - start) * 1000.0)
             found = [frame_to_reference.get(f, -1) for f in answered_frames(answer)][:k]
             pad = k - len(found)
-            # a loop on the sequence's own evidence is one whatever the probability's threshold
-            by_sequence = answer.sequence is not None and answer.sequence.passed
-            p = 1.0 if by_sequence else swept_probability(answer)
+            p, eligible = swept_score(answer)
             alone.append(swept_probability(answer, closable_only=False))
-            closable.append(by_sequence or swept_decision(answer, closable_only=True) is not None)
+            closable.append(eligible)
             indices.append(found + [-1] * pad)
             scores.append([p] + [p - 1.0 - i for i in range(len(found) - 1)] + [-np.inf] * pad)
             status.append(answer.status)
@@ -245,6 +243,28 @@ def loop_probability(answer: QueryResult) -> float:
     if decision is None or decision.loop_probability is None:
         return 0.0
     return float(decision.loop_probability)
+
+
+def swept_score(answer: QueryResult) -> tuple[float, bool]:
+    """The served sweep's score of an answer and whether some threshold makes it a loop: a
+    loop on the robot's sequence's own evidence is one at every threshold (1.0), a closable
+    decision from its probability on (:func:`swept_probability`), the others never."""
+    if answer.sequence is not None and answer.sequence.passed:
+        return 1.0, True
+    return swept_probability(answer), swept_decision(answer, closable_only=True) is not None
+
+
+# a loop on the robot's sequence's own evidence, in a logit sweep: above every decision's
+# logit (at most about 70), so accepted at every threshold a sweep reports
+SEQUENCE_LOOP_LOGIT = 1000.0
+
+
+def swept_logit(answer: QueryResult) -> float:
+    """:func:`swept_score` on the logit scale (:func:`decision_logit`): -inf for an answer no
+    threshold makes a loop, :data:`SEQUENCE_LOOP_LOGIT` for a loop by the sequence."""
+    if answer.sequence is not None and answer.sequence.passed:
+        return SEQUENCE_LOOP_LOGIT
+    return decision_logit(answer, closable_only=True)
 
 
 def swept_probability(answer: QueryResult, closable_only: bool = True) -> float:

@@ -10,11 +10,18 @@ from service.app.results import Candidate, QueryResult, SequenceAnswer, SubmapGu
 from service.evaluation.dataset_model import Dataset, QueryFrame, ReferenceFrame
 from service.evaluation.metrics import Ranking
 from service.evaluation.protocol import evaluate_ranking
-from service.evaluation.served_pass import answered_frames
+from service.evaluation.served_pass import (
+    SEQUENCE_LOOP_LOGIT,
+    answered_frames,
+    swept_logit,
+    swept_score,
+)
 from service.ml.decision import Decision
 
 
-def answer(*, closable: bool, loop_frame: int | None = None) -> QueryResult:
+def answer(
+    *, closable: bool, loop_frame: int | None = None, sequence_passed: bool = False
+) -> QueryResult:
     """A robot's observation whose match (frame 7) is not the sequence's place (frame 30)."""
     match = Candidate(7, "a", "r1", 0.9, inliers=60, verified=True)
     return QueryResult(
@@ -27,7 +34,7 @@ def answer(*, closable: bool, loop_frame: int | None = None) -> QueryResult:
         predicted_submap=SubmapGuess(available=False),
         keypoints=100,
         loop_frame_id=loop_frame,
-        sequence=SequenceAnswer(0.5, 10, [30], 1.0, 30, 0.1, None, passed=False),
+        sequence=SequenceAnswer(0.5, 10, [30], 1.0, 30, 0.1, None, passed=sequence_passed),
         decision=Decision(0.3, 0.98, passed=False, closable=closable),
     )
 
@@ -54,3 +61,12 @@ def test_a_served_sweep_never_accepts_an_answer_that_is_not_closable() -> None:
     swept = evaluate_ranking("m", "m", "served", ranking, dataset, [0] * 4, eligible=closable)
     every = evaluate_ranking("m", "m", "served", ranking, dataset, [0] * 4)
     assert swept.recall_at_full_precision == 0.5 and every.recall_at_full_precision == 1.0
+
+
+def test_a_loop_on_the_sequences_evidence_is_swept_as_one_at_every_threshold() -> None:
+    assert swept_score(answer(closable=False, loop_frame=30, sequence_passed=True)) == (1.0, True)
+    assert swept_score(answer(closable=False))[1] is False
+    assert swept_score(answer(closable=True))[1] is True
+    passed = answer(closable=False, loop_frame=30, sequence_passed=True)
+    assert swept_logit(passed) == SEQUENCE_LOOP_LOGIT
+    assert swept_logit(answer(closable=False)) == float("-inf")

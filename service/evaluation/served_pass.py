@@ -77,6 +77,8 @@ class ServedAnswers:
     # per query, whether some threshold makes it a loop (decision.closable, or the sequence
     # passed)
     closable: list[bool] = field(default_factory=list)
+    # per query, the robot's sequence (reference, margin, length, passed; NaN: none)
+    sequences: list[list[float]] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -89,6 +91,7 @@ class ServedAnswers:
             query_ms=self.query_ms[keep],
             probability_alone=self.probability_alone[keep],
             closable=[self.closable[i] for i in keep],
+            sequences=[self.sequences[i] for i in keep] if self.sequences else [],
         )
 
 
@@ -138,6 +141,7 @@ def served_answers(
     indices, scores, status, parts, query_ms, alone = [], [], [], [], [], []
     closable: list[bool] = []
     candidates: list[list[list[float]]] = []
+    sequences: list[list[float]] = []
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
@@ -170,6 +174,7 @@ def served_answers(
             status.append(answer.status)
             parts.append(decision_parts(answer))
             candidates.append(candidate_rows(answer, frame_to_reference))
+            sequences.append(sequence_row(answer, frame_to_reference))
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -186,6 +191,7 @@ def served_answers(
         candidates,
         np.array(alone, np.float64),
         closable,
+        sequences,
     )
 
 
@@ -217,6 +223,20 @@ def candidate_rows(answer: QueryResult, frame_to_reference: dict[int, int]) -> l
             number(c.scale),
         ]
         for c in answer.candidates
+    ]
+
+
+def sequence_row(answer: QueryResult, frame_to_reference: dict[int, int]) -> list[float]:
+    """The robot's sequence as (reference index or -1, margin, length, passed), NaN without
+    one: what a choice of ``sequence_margin_min`` is read from."""
+    sequence = answer.sequence
+    if sequence is None:
+        return [float("nan")] * 4
+    return [
+        float(frame_to_reference.get(sequence.frame_id, -1)),
+        float(sequence.margin),
+        float(sequence.length),
+        float(sequence.passed),
     ]
 
 
@@ -344,6 +364,7 @@ def served_method(
         "per_query_parts": np.round(served.parts, 4).tolist(),
         "per_query_status": served.status,
         "per_query_candidates": served.candidates,
+        "per_query_sequence": served.sequences,
         "per_query_closable": [int(c) for c in served.closable],
         "per_query_right": right.astype(int).tolist(),
     }

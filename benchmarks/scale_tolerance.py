@@ -77,7 +77,7 @@ def answer(
     best = ordered[0].frame_id
     if decision.loop_probability is None:
         return best, 0.0, False
-    # unrounded, over every answer (served_pass.swept_probability with closable_only=False)
+    # unrounded, over every answer (served_sweep.swept_probability with closable_only=False)
     return best, probability(decision.parts), decision.passed
 
 

@@ -25,14 +25,11 @@ from service.app.catalog import AtlasService
 from service.evaluation.feature_cache import CachedFeatures
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.online_service import frame_times, observe_frame, replay_atlas
-from service.evaluation.served_pass import (
-    PARTS,
+from service.evaluation.served_pass import PARTS, decision_parts, loop_counts, run_job_now
+from service.evaluation.served_sweep import (
     answered_frames,
     decision_logit,
-    decision_parts,
-    loop_counts,
     loop_probability,
-    run_job_now,
     swept_logit,
 )
 from service.ml.features import LocalFeatures
@@ -74,7 +71,7 @@ class ServedReplay:
     """Per frame, in order: the frame index answered first (-1: none), its loop probability
     (0 without a decision), the decision's logit (-inf without one) and the same for closable
     answers only (-inf for one no threshold makes a loop, above every decision for a loop by
-    the robot's sequence: served_pass.swept_logit), status, decision parts (NaN:
+    the robot's sequence: served_sweep.swept_logit), status, decision parts (NaN:
     absent), sequence length used, the model version that answered, the frames of its current
     stay left out and the call's milliseconds; then the jobs run meanwhile."""
 

@@ -31,8 +31,8 @@ from service.config import Settings
 from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, precision_recall
 from service.evaluation.protocol import MethodResult, evaluate_ranking
+from service.evaluation.served_sweep import answered_frames, swept_probability, swept_score
 from service.jobs.retraining import JobRunner
-from service.ml.decision import Decision, logit, probability
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import jobs
 from service.storage import repository as repo
@@ -56,11 +56,9 @@ QUERY_ROBOT, QUERY_SUBMAP = "queries", "queries"
 
 @dataclass
 class ServedAnswers:
-    """Per query: the served ranking (scores: the loop probability in column 0, 0 where the
-    answer is not closable, 1 where the robot's sequence passed: a loop at every threshold),
-    the status,
-    the decision's parts (NaN: absent) and the milliseconds of heads + search + verification
-    + decision."""
+    """Per query: the served ranking (column 0 scored by
+    :func:`service.evaluation.served_sweep.swept_score`), the status, the decision's parts
+    (NaN: absent) and the milliseconds of heads + search + verification + decision."""
 
     ranking: Ranking
     status: list[str]
@@ -238,83 +236,6 @@ def sequence_row(answer: QueryResult, frame_to_reference: dict[int, int]) -> lis
         float(sequence.length),
         float(sequence.passed),
     ]
-
-
-def answered_frames(answer: QueryResult) -> list[int]:
-    """The frames an answer names, the one to act on first: the loop's frame; else the match
-    when the decision could close it (the swept probability is the match's: a lower threshold
-    makes it the loop); else the robot's sequence's aligned frame, else the match; then the
-    other candidates."""
-    ids = [c.frame_id for c in answer.candidates]
-    first = answer.loop_frame_id
-    decision = answer.decision
-    if first is None and answer.match is not None and decision is not None and decision.closable:
-        first = answer.match.frame_id
-    if first is None and answer.sequence is not None:
-        first = answer.sequence.frame_id
-    if first is None:
-        return ids
-    return [first, *(f for f in ids if f != first)]
-
-
-def loop_probability(answer: QueryResult) -> float:
-    """The number the service thresholds (0 when the answer has no decision)."""
-    decision = answer.decision
-    if decision is None or decision.loop_probability is None:
-        return 0.0
-    return float(decision.loop_probability)
-
-
-def swept_score(answer: QueryResult) -> tuple[float, bool]:
-    """The served sweep's score of an answer and whether some threshold makes it a loop: a
-    loop on the robot's sequence's own evidence is one at every threshold (1.0), a closable
-    decision from its probability on (:func:`swept_probability`), the others never."""
-    if answer.sequence is not None and answer.sequence.passed:
-        return 1.0, True
-    return swept_probability(answer), swept_decision(answer, closable_only=True) is not None
-
-
-# a loop on the robot's sequence's own evidence, in a logit sweep: above every decision's
-# logit (at most about 70), so accepted at every threshold a sweep reports
-SEQUENCE_LOOP_LOGIT = 1000.0
-
-
-def swept_logit(answer: QueryResult) -> float:
-    """:func:`swept_score` on the logit scale (:func:`decision_logit`): -inf for an answer no
-    threshold makes a loop, :data:`SEQUENCE_LOOP_LOGIT` for a loop by the sequence."""
-    if answer.sequence is not None and answer.sequence.passed:
-        return SEQUENCE_LOOP_LOGIT
-    return decision_logit(answer, closable_only=True)
-
-
-def swept_probability(answer: QueryResult, closable_only: bool = True) -> float:
-    """``loop_probability`` as the decision computes it, before its rounding to 6 decimals
-    (which ties most verified sequence answers at 1.0, so a sweep could not order them):
-    the same order and threshold, in [0, 1]; 0 without a decision, and with ``closable_only``
-    for an answer no threshold makes a loop (:func:`swept_decision`; the served row's sweep
-    leaves those out)."""
-    decision = swept_decision(answer, closable_only)
-    return 0.0 if decision is None else probability(decision.parts)
-
-
-def decision_logit(answer: QueryResult, closable_only: bool = False) -> float:
-    """The decision model's logit of the answer's parts (-inf without a decision, and with
-    ``closable_only`` for an answer that is not ``decision.closable``): ordered as
-    ``loop_probability`` but neither rounded nor saturated at 1.0, so a sweep can still order
-    the answers the rounded probability ties."""
-    decision = swept_decision(answer, closable_only)
-    return -np.inf if decision is None else logit(decision.parts)
-
-
-def swept_decision(answer: QueryResult, closable_only: bool) -> Decision | None:
-    """The answer's decision when a sweep may accept it: None without a probability, or with
-    ``closable_only`` when the decision is not ``closable``."""
-    decision = answer.decision
-    if decision is None or decision.loop_probability is None:
-        return None
-    if closable_only and not decision.closable:
-        return None
-    return decision
 
 
 def decision_parts(answer: QueryResult) -> list[float]:

@@ -10,7 +10,7 @@ from service.app.results import Candidate, QueryResult, SequenceAnswer, SubmapGu
 from service.evaluation.dataset_model import Dataset, QueryFrame, ReferenceFrame
 from service.evaluation.metrics import Ranking
 from service.evaluation.protocol import evaluate_ranking
-from service.evaluation.served_pass import (
+from service.evaluation.served_sweep import (
     SEQUENCE_LOOP_LOGIT,
     answered_frames,
     swept_logit,

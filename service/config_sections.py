@@ -243,13 +243,24 @@ class SequenceSettings(BaseSettings):
         "on what they show (service.ml.sequences.contrast; 0: plain vectors).",
     )
     sequence_margin_min: float = Field(
-        6.0,
+        4.0,
         ge=0.0,
         description="A robot's sequence is a loop on its own when its best place's score "
         "exceeds that of the best rival place (more than 3 frames away along a trajectory, or "
         "on another) by this many standard deviations and it aligned at least "
-        "consistency_frames frames. 6: the largest margin of a wrong sequence answer on the "
-        "first half of the development sets' queries at L = 10 (5.86, Nordland).",
+        "consistency_frames frames; for a place on another robot's or another sequence's "
+        "trajectory (the robot's own current sequence: sequence_margin_min_own_run). 4: above "
+        "the largest margin of a wrong sequence answer on the first half of the development "
+        "sets' queries at L = 10 (3.59, Nordland; 3.85 on its second half).",
+    )
+    sequence_margin_min_own_run: float = Field(
+        6.0,
+        ge=0.0,
+        description="The margin a robot's sequence needs when its best place lies on the "
+        "robot's own current sequence (a revisit within one run): the same season, light and "
+        "camera on both sides make look-alike stretches of one run closer than across runs. "
+        "6: above the largest margin of a wrong own-run answer in the first half of the "
+        "two-traversal Nordland replay (5.99, eval-online).",
     )
     consistency_frames: int = Field(
         3,

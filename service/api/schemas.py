@@ -165,9 +165,15 @@ class SequenceOut(BaseModel):
         description="The rival place's frame aligned with this query; null when there was none."
     )
     passed: bool = Field(
-        description="A loop on the sequence's own evidence: margin >= LOOPNET_SEQUENCE_MARGIN_MIN "
-        "over at least LOOPNET_CONSISTENCY_FRAMES aligned frames, and this query's frame alone "
-        "favours the aligned frame (its standardised similarity is at least 1)."
+        description="A loop on the sequence's own evidence: margin >= margin_min over at least "
+        "LOOPNET_CONSISTENCY_FRAMES aligned frames, and this query's frame alone favours the "
+        "aligned frame (its standardised similarity is at least 1)."
+    )
+    margin_min: float = Field(
+        0.0,
+        description="The margin this sequence needed to pass: LOOPNET_SEQUENCE_MARGIN_MIN_OWN_RUN "
+        "when its place lies on the robot's own current sequence (a revisit within one run), "
+        "else LOOPNET_SEQUENCE_MARGIN_MIN.",
     )
     contrast_frames: int = Field(
         0,

@@ -15,7 +15,9 @@ class SequenceAnswer:
     ``frame_id`` is aligned with the newest frame; ``aligned`` gives the frame aligned with each
     query frame, oldest first (None where the reference trajectory had none). ``margin`` is the
     score minus that of the best rival place (``rival_frame_id``, None when no other place was
-    scored: the rival counts as 0); ``passed``: a loop on the sequence's own evidence.
+    scored: the rival counts as 0); ``margin_min``: the margin it needed (its place on the
+    robot's own current sequence or another, :func:`~service.ml.sequences.margin_needed`);
+    ``passed``: a loop on the sequence's own evidence.
     ``contrast_frames``: the robot's earlier frames the newest was contrasted with (0: scored on
     plain vectors, :mod:`service.ml.sequences.contrast`)."""
 
@@ -28,6 +30,7 @@ class SequenceAnswer:
     rival_frame_id: int | None
     passed: bool
     contrast_frames: int = 0
+    margin_min: float = 0.0
 
 
 @dataclass

@@ -44,6 +44,7 @@ from service.ml.sequences import (
     agree,
     decide,
     distinctiveness,
+    margin_needed,
     match_sequence,
     sequence_starts,
 )
@@ -327,6 +328,13 @@ class SequenceScorer:
         if distinct is None:
             return None
         best = matches[0]
+        needed = margin_needed(
+            view.trajectories,
+            best.reference,
+            earlier[-1].position if earlier else None,
+            other_run=self.settings.sequence_margin_min,
+            own_run=self.settings.sequence_margin_min_own_run,
+        )
         return SequenceAnswer(
             score=round(float(best.score), 6),
             length=best.length,
@@ -336,8 +344,9 @@ class SequenceScorer:
             margin=round(float(distinct.margin), 6),
             rival_frame_id=int(view.ids[distinct.rival]) if distinct.rival is not None else None,
             contrast_frames=contrast_frames,
+            margin_min=needed,
             passed=bool(
-                distinct.margin >= self.settings.sequence_margin_min
+                distinct.margin >= needed
                 and best.length >= self.consistency.required
                 and best.newest_z >= NEWEST_Z_MIN
             ),

@@ -331,6 +331,38 @@ def test_a_distinct_sequence_is_a_loop_where_single_frames_are_not(
     assert first.loop_frame_id is None
 
 
+@pytest.mark.parametrize("mapped_by", ["mapper", "rover"])
+def test_a_revisit_within_one_run_needs_the_own_run_margin(
+    data_dir: Path, pipeline, mapped_by: str
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys above, the places mapped by another robot or by the rover itself
+    just before, in the same run: the same sequence answer passes on another robot's
+    trajectory (sequence_margin_min) and needs sequence_margin_min_own_run on the rover's
+    own, which says so in ``margin_min``."""
+    with make_client(
+        data_dir,
+        pipeline,
+        sequence_margin_min=3.0,
+        sequence_margin_min_own_run=50.0,
+        trajectory_contrast_frames=0,
+    ) as client:
+        wait_ready(client)
+        assert client.post("/v1/atlases", json={"name": "campus"}).status_code == 201
+        assert client.post("/v1/atlases/campus/submaps", json={"name": "s0"}).status_code == 201
+        ids = [insert(client, pipeline, features(G[p]), mapped_by, float(p)) for p in range(PLACES)]
+        recent = {"exclude_recent_frames": 3, "exclude_recent_seconds": 0.0}
+        answers = [
+            observe(client, ambiguous(place, DECOYS[i]), PLACES + i, recent, sequence_length=5)
+            for i, place in enumerate([20, 21, 22, 23, 24])
+        ]
+    newest = answers[-1].sequence
+    own = mapped_by == "rover"
+    assert newest is not None and newest.frame_id == ids[24] and newest.margin >= 3.0
+    assert newest.margin_min == (50.0 if own else 3.0)
+    assert newest.passed is not own
+    assert (answers[-1].status == "loop") is not own
+
+
 @pytest.mark.parametrize("contrast", [10, 0])
 def test_trajectory_contrast_finds_the_place_across_a_change_of_condition(
     data_dir: Path, pipeline, contrast: int

@@ -11,7 +11,11 @@ from service.ml.sequences.consistency import (
     consistent_scores,
     decide,
 )
-from service.ml.sequences.distinctiveness import Distinctiveness, distinctiveness
+from service.ml.sequences.distinctiveness import (
+    Distinctiveness,
+    distinctiveness,
+    margin_needed,
+)
 from service.ml.sequences.scoring import (
     MapMoments,
     SequenceMatch,
@@ -37,6 +41,7 @@ __all__ = [
     "consistent_scores",
     "decide",
     "distinctiveness",
+    "margin_needed",
     "match_sequence",
     "propose_candidates",
     "score_candidates",

@@ -53,3 +53,24 @@ def distinctiveness(
         ):
             return Distinctiveness(best.score - match.score, other)
     return Distinctiveness(best.score, None)
+
+
+def margin_needed(
+    trajectories: Trajectories,
+    reference: int,
+    own_frame: int | None,
+    *,
+    other_run: float,
+    own_run: float,
+) -> float:
+    """The margin a sequence whose best place is map frame ``reference`` needs to be a loop
+    on its own: ``own_run`` when that place lies on the asking robot's own current sequence
+    (``own_frame``: one of its earlier frames in the map; None: none is), else ``other_run``.
+    Within one run the season, light and camera are the same on both sides, so look-alike
+    stretches come closer than across runs: on the two-traversal Nordland replay wrong
+    own-run answers reached a margin of 5.99, wrong answers across runs 3.85
+    (benchmarks/RESULTS.md, issue 25, stop 40)."""
+    own = own_frame is not None and (
+        trajectories.sequence[reference] == trajectories.sequence[own_frame]
+    )
+    return own_run if own else other_run

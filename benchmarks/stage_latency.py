@@ -111,7 +111,9 @@ def decision_cost(image: Path, repeats: int) -> None:
     query's stages (decode, DISK 512 px / 1024 kp, MobileNetV2 224, verification of 5
     candidates by MNN + RANSAC) beside today's decision (``verification.decide``) and the new
     one (``answer_evidence`` + ``decide_loop`` + ``probable_candidate``), and the inliers' zoom
-    of 5 candidates with the re-rank that weighs it (stop 35), p50 CPU ms."""
+    of 5 candidates with the re-rank that weighs it (stop 35), and the one extra verification
+    the decision may ask for: the rival reserve when the checked candidates show one place (stop
+    36), and again the sequence's place when it is not among them (stop 37), p50 CPU ms."""
     from service.app.decision import answer_evidence, probable_candidate
     from service.app.results import Candidate
     from service.app.sequences import single_frame_verdict
@@ -158,7 +160,11 @@ def decision_cost(image: Path, repeats: int) -> None:
         scales = [viewpoint_scale(*points) for _ in range(5)]
         rerank([0.9] * 5, [found.inliers] * 5, scales, scale_tolerance=DEFAULT_SCALE_TOLERANCE)
 
+    def extra() -> None:
+        verifier.verify_many(asked, [stored])
+
     q = statistics.median(cpu_timed(query, repeats))
+    x = statistics.median(cpu_timed(extra, repeats))
     o = statistics.median(cpu_timed(old, repeats * 200))
     n = statistics.median(cpu_timed(new, repeats * 200))
     z = statistics.median(cpu_timed(zoom, repeats * 200))
@@ -168,6 +174,10 @@ def decision_cost(image: Path, repeats: int) -> None:
     print(f"| decision issue 25 (evidence + loop_probability + status) | {n:.4f} |")
     print(f"| added by the decision | {n - o:.4f} ({100 * (n - o) / q:.3f} % of the query) |")
     print(f"| zoom of 5 candidates + its re-rank | {z:.4f} ({100 * z / q:.3f} % of the query) |")
+    print(
+        f"| one more candidate verified (rival reserve or the sequence's place, when needed; "
+        f"at most two) | {x:.2f} ({100 * x / q:.1f} % of the query each) |"
+    )
 
 
 def main() -> None:

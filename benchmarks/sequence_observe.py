@@ -30,7 +30,8 @@ from sqlalchemy.orm import sessionmaker
 from synthetic_embeddings import ClusteredEmbeddings, unit_rows
 
 from service.app.filters import Selection
-from service.app.sequences import RobotContext, SequenceScorer
+from service.app.robot_evidence import RobotContext
+from service.app.sequences import SequenceScorer
 from service.app.state import LoadedAtlas
 from service.config import Settings
 from service.index import AtlasIndex, IndexPolicy

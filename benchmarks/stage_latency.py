@@ -116,7 +116,7 @@ def decision_cost(image: Path, repeats: int) -> None:
     36), and again the sequence's place when it is not among them (stop 37), p50 CPU ms."""
     from service.app.decision import answer_evidence, probable_candidate
     from service.app.results import Candidate
-    from service.app.sequences import single_frame_verdict
+    from service.app.robot_evidence import single_frame_verdict
     from service.ml.decision import decide_loop
     from service.ml.verification import decide, rerank, view_units
     from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, viewpoint_scale

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 from service.app.results import Candidate, SequenceAnswer
-from service.app.sequences import Verdict
+from service.app.robot_evidence import Verdict
 from service.ml.decision import CANDIDATE_PROBABILITY, DEFAULT_RIVAL_GAP, Decision, Evidence
 from service.ml.sequences import PlaceStatus
 from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE, support

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from service.app.filters import QueryFilter
 from service.app.ingest import FrameFields, FrameIngest
 from service.app.results import QueryResult
-from service.app.sequences import RobotContext
+from service.app.robot_evidence import RobotContext
 from service.errors import InvalidInput
 from service.ml.features import FrameFeatures
 from service.ml.geometry import Intrinsics

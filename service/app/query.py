@@ -30,14 +30,9 @@ from service.app.results import (
     VerificationSummary,
     place_margin,
 )
+from service.app.robot_evidence import RobotContext, RobotEvidence, single_frame_verdict
 from service.app.sequence_place import at_sequence_place, place_first, sequence_place
-from service.app.sequences import (
-    SERVICE_SEQUENCE,
-    RobotContext,
-    RobotEvidence,
-    SequenceScorer,
-    single_frame_verdict,
-)
+from service.app.sequences import SERVICE_SEQUENCE, SequenceScorer
 from service.app.state import AtlasStates, LoadedAtlas
 from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.app.verify import CandidateVerification

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from service.app.decision import informative
 from service.app.results import Candidate, SequenceAnswer
-from service.app.sequences import RobotEvidence
+from service.app.robot_evidence import RobotEvidence
 from service.ml.decision import CENTRES
 from service.storage import repository as repo
 from service.storage.models import Frame

@@ -22,13 +22,14 @@ restarts answer alike.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 from sqlalchemy.orm import Session
 
 from service.app.filters import Selection
 from service.app.results import SequenceAnswer
+from service.app.robot_evidence import Earlier, RobotContext, RobotEvidence
 from service.app.sequence_map import SequenceMap, SequenceMaps
 from service.app.state import LoadedAtlas
 from service.app.stay import RobotFrames, frame_stay, stay_rule
@@ -38,11 +39,7 @@ from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import (
     ConsistencySettings,
     Hypothesis,
-    PlaceStatus,
     SequenceSettings,
-    Trajectories,
-    agree,
-    decide,
     distinctiveness,
     margin_needed,
     match_sequence,
@@ -60,83 +57,12 @@ SERVICE_SEQUENCE = SequenceSettings(seed_frames=0)
 NEWEST_Z_MIN = 1.0
 
 
-@dataclass(frozen=True)
-class RobotContext:
-    """What sequence scoring and consistency read about the asking robot."""
-
-    robot_id: str
-    timestamp: float | None
-    sequence_length: int  # 0: no sequence scoring
-
-
-@dataclass(frozen=True)
-class Earlier:
-    """One of the robot's earlier frames in its sequence: its map position and the map
-    positions of the matches its observation kept (None: stored without a search)."""
-
-    position: int
-    proposals: np.ndarray | None
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """``loop_frame_id``: the frame to close the loop with when ``status`` is a loop (the
-    single-frame match, or the sequence's aligned frame when only the sequence passed)."""
-
-    status: PlaceStatus
-    consistent: int
-    loop_frame_id: int | None = None
-
-
-@dataclass(frozen=True)
-class RobotEvidence:
-    """Read in the request's search session: the sequence answer, and the robot's previous
-    observations' hypotheses for the consistency check (oldest first)."""
-
-    sequence: SequenceAnswer | None
-    previous: list[Hypothesis | None]
-    position: dict[int, int]  # frame id -> map position (the map's, read-only here)
-    trajectories: Trajectories
-    consistency: ConsistencySettings
-    # the search's hits in trajectory-contrast order (indices; None: contrast unavailable)
-    hit_order: list[int] | None = None
-    # cosine of the query with the sequence's aligned frame (None: no sequence)
-    sequence_similarity: float | None = None
-
-    def same_place(self, frame_id: int, other_id: int) -> bool | None:
-        """Whether two map frames show one place by the consistency's rule (one reference
-        trajectory, at most ``max_step`` frames apart); None when the map does not hold one."""
-        a, b = self.position.get(frame_id, -1), self.position.get(other_id, -1)
-        if a < 0 or b < 0:
-            return None
-        return agree(a, b, self.trajectories, self.consistency.max_step)
-
-    def verdict(self, frame_id: int | None, passed: bool) -> Verdict:
-        """The newest single-frame answer (its matched frame and whether it passed) judged with
-        the previous observations; a passed sequence is a loop whatever they say."""
-        at = self.position.get(frame_id, -1) if frame_id is not None else -1
-        newest = Hypothesis(at, passed) if at >= 0 else None
-        decision = decide([*self.previous, newest], self.trajectories, self.consistency)
-        if decision.status == PlaceStatus.LOOP:
-            return Verdict(PlaceStatus.LOOP, decision.consistent, frame_id)
-        if self.sequence is not None and self.sequence.passed:
-            return Verdict(PlaceStatus.LOOP, decision.consistent, self.sequence.frame_id)
-        return Verdict(decision.status, decision.consistent)
-
-
 def _similarity(view: SequenceMap, query: np.ndarray, frame_id: int) -> float | None:
     """Cosine of ``query`` with the map's vector of ``frame_id`` (None: not held)."""
     position = view.positions([frame_id])[0]
     if position < 0:
         return None
     return float(view.lookup(np.array([position]))[0] @ np.asarray(query, np.float32))
-
-
-def single_frame_verdict(frame_id: int | None, passed: bool) -> Verdict:
-    """A query without a robot: no history to be consistent with."""
-    if passed and frame_id is not None:
-        return Verdict(PlaceStatus.LOOP, 1, frame_id)
-    return Verdict(PlaceStatus.NEW_PLACE, 0)
 
 
 def query_sequence(

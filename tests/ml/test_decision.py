@@ -180,7 +180,7 @@ def test_a_sequence_lends_its_margin_only_to_a_match_at_its_own_place() -> None:
 
 def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
     """Two map frames are one place on one trajectory within ``max_step`` frames."""
-    from service.app.sequences import RobotEvidence
+    from service.app.robot_evidence import RobotEvidence
     from service.ml.sequences import ConsistencySettings, Trajectories
 
     trajectories = Trajectories.build(["r"] * 20 + ["q"] * 5)

@@ -8,7 +8,7 @@ filter, searches and reads the candidates and their stored keypoints for verific
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
@@ -45,7 +45,7 @@ from service.ml.geometry import Intrinsics
 from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import PlaceStatus
 from service.ml.thumbnails import make_thumbnail
-from service.ml.verification import Verification, View, decide, rerank
+from service.ml.verification import Verification, View, decide
 from service.storage import repository as repo
 from service.storage.feature_store import load_local_features
 from service.storage.models import Atlas, Frame
@@ -189,8 +189,10 @@ class AtlasQueries(Observations):
             start = time.perf_counter()
             view = View(features.local, features.image_size, intrinsics)
             checked = candidates[: verified_count(config.top, state.index.size)]
-            verifications = self._verify(view, checked, found, min_inliers)
-            candidates = self._reranked(candidates)
+            verifications = self.verification.check(
+                view, checked, found.frames, found.stored, min_inliers
+            )
+            candidates = self.verification.reranked(candidates)
             # the rival part needs another place verified beside the best: when the checked
             # candidates all show one place, the most similar frame elsewhere is verified too
             reserve = found.reserve
@@ -199,12 +201,20 @@ class AtlasQueries(Observations):
                 and candidates[0].inliers is not None
                 and not has_verified_rival(candidates, self.settings.rival_gap_frames)
             ):
-                verifications.update(self._verify(view, [reserve], found, min_inliers))
-                candidates = self._reranked(candidates)
+                verifications.update(
+                    self.verification.check(
+                        view, [reserve], found.frames, found.stored, min_inliers
+                    )
+                )
+                candidates = self.verification.reranked(candidates)
             # a robot's sequence that names a place: the answer is about it (its frame verified
             # when no checked candidate shows it), the best single frame a rival beside it
             if found.place is not None and candidates[0].inliers is not None:
-                verifications.update(self._verify(view, [found.place], found, min_inliers))
+                verifications.update(
+                    self.verification.check(
+                        view, [found.place], found.frames, found.stored, min_inliers
+                    )
+                )
                 candidates = [*candidates, found.place]
             placed = at_sequence_place(candidates, found.evidence)
             if placed is not None:
@@ -295,37 +305,6 @@ class AtlasQueries(Observations):
             decision=decision,
             stay_frames=found.stay_frames,
         )
-
-    def _verify(
-        self, view: View, checked: list[Candidate], found: Found, min_inliers: int
-    ) -> dict[int, Verification]:
-        """Verify ``checked`` against the query's ``view`` and write what verification found
-        into each candidate; the verifications by frame id."""
-        verifications = {
-            frame_id: replace(v, verified=v.inliers >= min_inliers)
-            for frame_id, v in self.verification.verify(
-                view, [found.frames[c.frame_id] for c in checked], found.stored
-            ).items()
-        }
-        for candidate in checked:
-            verified = verifications.get(candidate.frame_id)
-            if verified is not None:
-                candidate.inliers = verified.inliers
-                candidate.inlier_ratio = round(verified.inlier_ratio, 4)
-                candidate.verified = verified.verified
-                candidate.relative_pose = verified.relative_pose
-                candidate.scale = round(verified.scale, 4) if verified.scale is not None else None
-        return verifications
-
-    def _reranked(self, candidates: list[Candidate]) -> list[Candidate]:
-        """``candidates`` in the order verification gives them (:func:`rerank`)."""
-        order = rerank(
-            [c.similarity for c in candidates],
-            [c.inliers for c in candidates],
-            [c.scale for c in candidates],
-            scale_tolerance=self.verification.config.scale_tolerance,
-        )
-        return [candidates[i] for i in order]
 
     def min_inliers(self, state: LoadedAtlas, matcher: str) -> int:
         """The setting when given, else the atlas calibration's (fitted for this matcher), else

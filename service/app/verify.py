@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+from service.app.results import Candidate
 from service.concurrency import InferenceGate
 from service.config import Settings
 from service.ml.features import LocalFeatures
@@ -14,6 +17,7 @@ from service.ml.verification import (
     Verifier,
     View,
     default_min_inliers,
+    rerank,
 )
 from service.storage.models import Frame
 
@@ -64,6 +68,45 @@ class CandidateVerification:
                 query, [frame_view(frame, stored[frame.id]) for frame in present]
             )
         return {frame.id: v for frame, v in zip(present, found, strict=True)}
+
+    def check(
+        self,
+        query: View,
+        checked: list[Candidate],
+        frames: dict[int, Frame],
+        stored: dict[int, LocalFeatures],
+        min_inliers: int,
+    ) -> dict[int, Verification]:
+        """Verify ``checked`` (their frames and stored keypoints by frame id) against the
+        query, a match verified from ``min_inliers`` on, and write what verification found into
+        each candidate; the verifications by frame id."""
+        verifications = {
+            frame_id: replace(v, verified=v.inliers >= min_inliers)
+            for frame_id, v in self.verify(
+                query, [frames[c.frame_id] for c in checked], stored
+            ).items()
+        }
+        for candidate in checked:
+            verified = verifications.get(candidate.frame_id)
+            if verified is not None:
+                candidate.inliers = verified.inliers
+                candidate.inlier_ratio = round(verified.inlier_ratio, 4)
+                candidate.verified = verified.verified
+                candidate.relative_pose = verified.relative_pose
+                candidate.scale = round(verified.scale, 4) if verified.scale is not None else None
+        return verifications
+
+    def reranked(self, candidates: list[Candidate]) -> list[Candidate]:
+        """``candidates`` in the order verification gives them (:func:`rerank`: verified ones
+        first by their inliers, discounted by a zoom beyond the scale tolerance, ties by
+        similarity; the others after, in retrieval order)."""
+        order = rerank(
+            [c.similarity for c in candidates],
+            [c.inliers for c in candidates],
+            [c.scale for c in candidates],
+            scale_tolerance=self.config.scale_tolerance,
+        )
+        return [candidates[i] for i in order]
 
     def verify_pair(self, query: View, candidate: View) -> Verification:
         """One pair, keeping which matches were inliers (to draw them)."""

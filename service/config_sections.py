@@ -262,6 +262,15 @@ class SequenceSettings(BaseSettings):
         "6: above the largest margin of a wrong own-run answer in the first half of the "
         "two-traversal Nordland replay (5.99, eval-online).",
     )
+    sequence_margin_min_tracking: float | None = Field(
+        2.5,
+        ge=0.0,
+        description="Loop tracking: the margin a robot's sequence needs when its place continues "
+        "the loop the robot's previous observation closed (the same trajectory, 0-2 frames "
+        "further along it); the first loop of a revisit still needs sequence_margin_min (or "
+        "the own-run margin). 2.5: the lowest margin that added no false loop on the first half "
+        "of Nordland's queries (benchmarks/decision_headroom.py). Unset: no tracking.",
+    )
     consistency_frames: int = Field(
         3,
         ge=1,

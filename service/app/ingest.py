@@ -136,11 +136,13 @@ class FrameIngest:
         fields: FrameFields,
         features: FrameFeatures,
         proposals: list[int] | None = None,
+        loop_frame_id: int | None = None,
     ) -> Frame:
         """Commit a validated frame's rows in one transaction; the embedding is then computed
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
-        own search found (an observation's), kept for sequence scoring."""
+        own search found (an observation's), kept for sequence scoring; ``loop_frame_id``: the
+        frame that observation closed a loop with."""
         if self.states.store_kind == PGVECTOR:  # load the atlas (and its table) beforehand
             with self.sessions() as session:
                 self.states.loaded(self.checked_atlas(session, atlas_name).id)
@@ -157,6 +159,7 @@ class FrameIngest:
                 intrinsics=fields.intrinsics,
                 features=features,
                 proposals=proposals,
+                loop_frame_id=loop_frame_id,
             )
             in_table = self.states.store_kind == PGVECTOR
             revision = change_feed.record(  # pgvector: the feed only orders (no frame rows)

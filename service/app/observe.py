@@ -120,7 +120,11 @@ class Observations:
         failure writes nothing."""
         result = self._search(atlas_name, features, k, query_filter, fields.intrinsics, robot)
         frame = self.ingest.store(
-            atlas_name=atlas_name, fields=fields, features=features, proposals=result.proposals
+            atlas_name=atlas_name,
+            fields=fields,
+            features=features,
+            proposals=result.proposals,
+            loop_frame_id=result.loop_frame_id if result.status == "loop" else None,
         )
         return result, frame
 

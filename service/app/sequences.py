@@ -137,12 +137,14 @@ class SequenceScorer:
             session, state.atlas_id, robot, longest, self.settings.sequence_max_gap_seconds
         )
         kept = repo.frame_proposals(session, frame_ids=previous)
+        last_loop = repo.observed_loop(session, frame_id=previous[-1]) if previous else None
         with self.maps.hold(session, state) as view:
             positions = view.positions(previous)
             earlier = [
                 Earlier(
                     int(p),
                     self._positions(view, kept[frame_id]) if frame_id in kept else None,
+                    self._loop_position(view, last_loop) if frame_id == previous[-1] else None,
                 )
                 for frame_id, p in zip(previous, positions, strict=True)
                 if p >= 0
@@ -260,6 +262,8 @@ class SequenceScorer:
             earlier[-1].position if earlier else None,
             other_run=self.settings.sequence_margin_min,
             own_run=self.settings.sequence_margin_min_own_run,
+            previous_loop=earlier[-1].loop if earlier else None,
+            tracking=self.settings.sequence_margin_min_tracking,
         )
         return SequenceAnswer(
             score=round(float(best.score), 6),
@@ -291,6 +295,14 @@ class SequenceScorer:
         before = np.array([e.position for e in earlier[-window:]], dtype=np.int64)
         vector = contrasted_query(newest, view.lookup(before))
         return vector, len(before) if vector is not None else 0
+
+    @staticmethod
+    def _loop_position(view: SequenceMap, frame_id: int | None) -> int | None:
+        """Map position of a loop's frame (None: no loop, or the map no longer holds it)."""
+        if frame_id is None:
+            return None
+        position = int(view.positions([frame_id])[0])
+        return position if position >= 0 else None
 
     @staticmethod
     def _positions(view: SequenceMap, frame_ids: Sequence[int] | np.ndarray) -> np.ndarray:

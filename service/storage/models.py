@@ -261,7 +261,10 @@ class FrameProposals(Base):
     """The frames an observed frame's own search returned (best first, int32 little-endian
     ids, the filter of its request applied): the places it proposes when it is one of its
     robot's recent frames in a later request's sequence. Derived data: a frame without a row
-    (stored by ``POST /frames``, or restored from a snapshot) is searched again instead."""
+    (stored by ``POST /frames``, or restored from a snapshot) is searched again instead.
+    ``loop_frame_id``: the frame its observation closed a loop with (None: no loop), which the
+    robot's next observation may continue (loop tracking); a plain id, the frame may have been
+    deleted since."""
 
     __tablename__ = "frame_proposals"
 
@@ -269,6 +272,7 @@ class FrameProposals(Base):
         ForeignKey("frames.id", ondelete="CASCADE"), primary_key=True
     )
     frame_ids: Mapped[bytes] = mapped_column(LargeBinary)
+    loop_frame_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class LoopClosureThumbnail(Base):

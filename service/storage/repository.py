@@ -118,11 +118,13 @@ def add_frame(
     intrinsics: Intrinsics | None,
     features: FrameFeatures,
     proposals: Sequence[int] | None = None,
+    loop_frame_id: int | None = None,
 ) -> Frame:
     """Insert a frame and its features in the caller's transaction; returns it with its id.
 
     ``proposals``: the frames the frame's own search returned, best first (an observation's),
-    kept for sequence scoring (:class:`~service.storage.models.FrameProposals`)."""
+    kept for sequence scoring (:class:`~service.storage.models.FrameProposals`), with the frame
+    its observation closed a loop with (``loop_frame_id``)."""
     width, height = features.image_size
     frame = Frame(
         atlas_id=atlas.id,
@@ -146,7 +148,9 @@ def add_frame(
         session.add(FrameThumbnail(frame_id=frame.id, jpeg=features.thumbnail))
     if proposals is not None:
         ids = np.asarray(proposals, dtype="<i4")
-        session.add(FrameProposals(frame_id=frame.id, frame_ids=ids.tobytes()))
+        session.add(
+            FrameProposals(frame_id=frame.id, frame_ids=ids.tobytes(), loop_frame_id=loop_frame_id)
+        )
     session.flush()
     return frame
 
@@ -162,6 +166,14 @@ def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, 
         )
     )
     return {int(i): np.frombuffer(blob, dtype="<i4").astype(np.int64) for i, blob in rows}
+
+
+def observed_loop(session: Session, *, frame_id: int) -> int | None:
+    """The frame the observation that stored ``frame_id`` closed a loop with (None: it closed
+    none, or the frame was not stored by an observation)."""
+    return session.scalar(
+        select(FrameProposals.loop_frame_id).where(FrameProposals.frame_id == frame_id)
+    )
 
 
 def get_frame(session: Session, *, atlas: Atlas, frame_id: int) -> Frame:

@@ -344,6 +344,7 @@ def test_a_revisit_within_one_run_needs_the_own_run_margin(
         pipeline,
         sequence_margin_min=3.0,
         sequence_margin_min_own_run=50.0,
+        sequence_margin_min_tracking=None,
         trajectory_contrast_frames=0,
     ) as client:
         wait_ready(client)
@@ -361,6 +362,40 @@ def test_a_revisit_within_one_run_needs_the_own_run_margin(
     assert newest.margin_min == (50.0 if own else 3.0)
     assert newest.passed is not own
     assert (answers[-1].status == "loop") is not own
+
+
+@pytest.mark.parametrize("tracking", [1.0, None])
+def test_a_loop_the_robot_just_closed_is_continued_from_the_tracking_margin(
+    data_dir: Path, pipeline, tracking: float | None
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys: its first loop needs sequence_margin_min; every answer right
+    after a loop whose place continues it (the next place along the mapper's trajectory)
+    needs only sequence_margin_min_tracking, and says so; with tracking unset, none does.
+    The loop's frame is read back from what the previous observation stored."""
+    with make_client(
+        data_dir,
+        pipeline,
+        sequence_margin_min=3.0,
+        sequence_margin_min_tracking=tracking,
+        trajectory_contrast_frames=0,
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        service = client.app.state.runtime.service  # type: ignore[attr-defined]
+        with service.sessions() as session:
+            stored = dict(
+                session.execute(select(FrameProposals.frame_id, FrameProposals.loop_frame_id)).all()
+            )
+    assert sorted(v for v in stored.values() if v is not None) == sorted(
+        a.loop_frame_id for a in answers if a.status == "loop"
+    )
+    follows = [
+        (before.status == "loop", after.sequence.margin_min)
+        for before, after in zip(answers, answers[1:], strict=False)
+        if after.sequence is not None and after.sequence.frame_id in ids[21:25]
+    ]
+    assert any(after_loop for after_loop, _ in follows)  # the drive closes a loop early enough
+    for after_loop, margin_min in follows:
+        assert margin_min == (tracking if after_loop and tracking is not None else 3.0)
 
 
 @pytest.mark.parametrize("contrast", [10, 0])

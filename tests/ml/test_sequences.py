@@ -16,8 +16,10 @@ from service.ml.sequences import (
     SequenceSettings,
     Trajectories,
     consistent_scores,
+    continues_loop,
     decide,
     distinctiveness,
+    margin_needed,
     match_sequence,
     score_candidates,
     sequence_starts,
@@ -336,3 +338,24 @@ def test_a_look_alike_stretch_has_a_small_margin_and_the_true_place_a_large_one(
     unique_score, unique_margin = margin(in_unique)
     assert lap_score > 5.0 and unique_score > 5.0  # both look like confident sequences
     assert lap_margin < 1.0 < 5.0 < unique_margin
+
+
+def test_a_place_continues_the_last_loop_only_just_ahead_on_its_trajectory() -> None:
+    """Loop tracking: 0-2 frames on along the loop's own trajectory continue it; behind it,
+    further ahead, or on another trajectory, the full margin applies again."""
+    two_routes = Trajectories.single(40, np.arange(40) == 20)  # frames 0-19 and 20-39
+    assert [continues_loop(two_routes, r, 10) for r in (9, 10, 11, 12, 13)] == [
+        False,
+        True,
+        True,
+        True,
+        False,
+    ]
+    assert not continues_loop(two_routes, 20, 19)  # the next trajectory
+    assert not continues_loop(two_routes, 11, None)  # no loop before
+    margins = {"other_run": 4.0, "own_run": 6.0}
+    assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=2.5, **margins) == 2.5
+    assert margin_needed(two_routes, 14, None, previous_loop=10, tracking=2.5, **margins) == 4.0
+    assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=None, **margins) == 4.0
+    # a tracking margin above the one that applies changes nothing
+    assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=9.0, **margins) == 4.0

@@ -13,6 +13,7 @@ from service.ml.sequences.consistency import (
 )
 from service.ml.sequences.distinctiveness import (
     Distinctiveness,
+    continues_loop,
     distinctiveness,
     margin_needed,
 )
@@ -39,6 +40,7 @@ __all__ = [
     "agree",
     "carried_timestamps",
     "consistent_scores",
+    "continues_loop",
     "decide",
     "distinctiveness",
     "margin_needed",

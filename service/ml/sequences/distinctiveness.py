@@ -55,6 +55,26 @@ def distinctiveness(
     return Distinctiveness(best.score, None)
 
 
+# How far along its trajectory a sequence's place may lie past the place the robot's previous
+# observation closed a loop with, and still continue that loop: a robot passes about one
+# reference frame per frame (SequenceSettings.speeds 0.8-1.25), so 0-2 frames. A window of -1..3
+# let tracking drift two frames off on Nordland (benchmarks/decision_headroom.py).
+TRACKING_STEPS = (0, 2)
+
+
+def continues_loop(trajectories: Trajectories, reference: int, previous_loop: int | None) -> bool:
+    """Whether map frame ``reference`` continues the loop the robot's previous observation
+    closed at map frame ``previous_loop`` (None: it closed none): the same trajectory, 0-2
+    frames further along it (:data:`TRACKING_STEPS`)."""
+    if (
+        previous_loop is None
+        or trajectories.sequence[reference] != (trajectories.sequence[previous_loop])
+    ):
+        return False
+    step = int(trajectories.rank[reference]) - int(trajectories.rank[previous_loop])
+    return TRACKING_STEPS[0] <= step <= TRACKING_STEPS[1]
+
+
 def margin_needed(
     trajectories: Trajectories,
     reference: int,
@@ -62,6 +82,8 @@ def margin_needed(
     *,
     other_run: float,
     own_run: float,
+    previous_loop: int | None = None,
+    tracking: float | None = None,
 ) -> float:
     """The margin a sequence whose best place is map frame ``reference`` needs to be a loop
     on its own: ``own_run`` when that place lies on the asking robot's own current sequence
@@ -69,8 +91,16 @@ def margin_needed(
     Within one run the season, light and camera are the same on both sides, so look-alike
     stretches come closer than across runs: on the two-traversal Nordland replay wrong
     own-run answers reached a margin of 5.99, wrong answers across runs 3.85
-    (benchmarks/RESULTS.md, issue 25, stop 40)."""
+    (benchmarks/RESULTS.md, issue 25, stop 40).
+
+    Loop tracking: when the place continues the loop the robot's previous observation closed
+    (``previous_loop``, :func:`continues_loop`), ``tracking`` suffices if lower (None: off).
+    The first loop of a revisit needs the full margin; its continuation is the same hypothesis
+    one frame on, as a SLAM front end tracks a relocalisation once made."""
     own = own_frame is not None and (
         trajectories.sequence[reference] == trajectories.sequence[own_frame]
     )
-    return own_run if own else other_run
+    needed = own_run if own else other_run
+    if tracking is not None and continues_loop(trajectories, reference, previous_loop):
+        return min(needed, tracking)
+    return needed

@@ -1,0 +1,164 @@
+"""How far the served decision could go on a development set, from ``loopnet eval`` reports:
+what bounds each served row's R@100%P, and what *loop tracking* would add to a robot's row.
+
+    python benchmarks/decision_headroom.py /work/runs/n0/report.json --tolerance 1 \\
+        --margins 2,2.5,3,3.5 --out benchmarks/results/issue25/stop41_headroom_nordland.json
+
+1. **The closable ceiling.** A served sweep moves only the answers the service could close
+   (a verified match no less rare than the atlas's impostors, or a passed sequence). Right
+   answers outside that set can never count, so ``closable and right / queries`` bounds
+   R@100%P whatever the probability's order. Printed for every served row, with the
+   inliers of the right answers left out (below the fitted minimum or not).
+2. **Loop tracking, offline.** A robot's row (``observe``): after a loop, a sequence whose
+   place continues the previous loop's along its trajectory (``step`` frames on) is accepted
+   from a lower margin. Counted per half of the queries (route order) with the loops it adds
+   and how many are false. Choose on the FIRST half, read the second as held out. Offline
+   only: the newest frame's own z (the service's third sequence condition) is not in the
+   report, so the added loops are an upper bound. Needs frame-aligned ground truth (query i
+   right on references i +- ``tolerance``).
+
+Nothing here is a service path: it is the record of what a change could buy before building it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Ceiling:
+    row: str
+    queries: int
+    right: int
+    closable_right: int
+    closable_wrong: int
+    ceiling: float
+    # median inliers of the right answers the service could not close
+    unclosable_inliers_median: float
+
+
+@dataclass(frozen=True)
+class Tracking:
+    margin: float
+    half: str
+    added: int
+    false: int
+    false_examples: list[tuple[int, int, float]]  # (query, reference, margin)
+
+
+def served_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
+    rows = [m for m in report["methods"] if "-served" in m["name"]]
+    if not rows:
+        raise SystemExit("no served row in the report (run loopnet eval without --no-served)")
+    return rows
+
+
+def ceiling(row: dict[str, Any]) -> Ceiling:
+    """The closable ceiling of one served row."""
+    details = row["details"]
+    right = np.array(details["per_query_right"], bool)
+    closable = np.array(details["per_query_closable"], bool)
+    inliers = np.expm1(np.array(details["per_query_parts"], float)[:, 0])
+    left_out = inliers[right & ~closable]
+    left_out = left_out[~np.isnan(left_out)]
+    return Ceiling(
+        row=row["name"],
+        queries=len(right),
+        right=int(right.sum()),
+        closable_right=int((right & closable).sum()),
+        closable_wrong=int((~right & closable).sum()),
+        ceiling=round(float((right & closable).mean()), 3),
+        unclosable_inliers_median=round(float(np.median(left_out)), 1)
+        if len(left_out)
+        else math.nan,
+    )
+
+
+def loop_frames(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Per query: whether it was answered ``loop`` and the reference of its loop (the
+    sequence's place when the sequence passed, else the served match; -1 for no loop)."""
+    sequences = np.array(details["per_query_sequence"], float)
+    loop = np.array([s == "loop" for s in details["per_query_status"]])
+    frames = np.full(len(loop), -1, np.int64)
+    for i in np.flatnonzero(loop):
+        if sequences[i, 3] == 1:
+            frames[i] = int(sequences[i, 0])
+        elif details["per_query_candidates"][i]:
+            frames[i] = int(details["per_query_candidates"][i][0][0])
+    return loop, frames
+
+
+def tracking(
+    details: dict[str, Any], margin: float, tolerance: int, steps: tuple[int, int], required: int
+) -> list[Tracking]:
+    """The loops tracking at ``margin`` adds, per half, and the false ones among them."""
+    sequences = np.array(details["per_query_sequence"], float)
+    loop, frames = loop_frames(details)
+    n = len(loop)
+    added: list[tuple[int, int, float, bool]] = []
+    for i in range(1, n):
+        if loop[i] or not loop[i - 1] or np.isnan(sequences[i, 0]):
+            continue
+        reference, seq_margin, length = int(sequences[i, 0]), sequences[i, 1], sequences[i, 2]
+        step = reference - frames[i - 1]
+        if steps[0] <= step <= steps[1] and seq_margin >= margin and length >= required:
+            loop[i], frames[i] = True, reference  # tracked: the next frame may continue it
+            added.append((i, reference, float(seq_margin), abs(reference - i) > tolerance))
+    out = []
+    for half, (lo, hi) in {"first": (0, n // 2), "second": (n // 2, n)}.items():
+        mine = [a for a in added if lo <= a[0] < hi]
+        false = [(q, r, round(m, 2)) for q, r, m, wrong in mine if wrong]
+        out.append(Tracking(margin, half, len(mine), len(false), false[:5]))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("reports", nargs="+", type=Path)
+    parser.add_argument("--tolerance", type=int, required=True, help="frames either side")
+    parser.add_argument("--margins", default="2,2.5,3,3.5")
+    parser.add_argument("--steps", default="-1,3", help="continuation window along the route")
+    parser.add_argument("--required", type=int, default=3, help="aligned frames at least")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    lo, hi = (int(v) for v in args.steps.split(","))
+    record: dict[str, Any] = {}
+    for path in args.reports:
+        report = json.loads(path.read_text())
+        entry: dict[str, Any] = {"ceilings": [], "tracking": []}
+        print(f"== {path}")
+        for row in served_rows(report):
+            c = ceiling(row)
+            entry["ceilings"].append(asdict(c))
+            print(
+                f"{c.row}: right {c.right}/{c.queries}, closable right {c.closable_right} "
+                f"(ceiling of R@100%P {c.ceiling}), closable wrong {c.closable_wrong}, "
+                f"unclosable right answers' inliers median {c.unclosable_inliers_median}"
+            )
+            details = row["details"]
+            sequences = details.get("per_query_sequence") or []
+            if not any(not math.isnan(s[0]) for s in sequences):
+                continue
+            loops = sum(s == "loop" for s in details["per_query_status"])
+            print(f"  loop tracking (steps {lo}..{hi}) on {loops} loops at the defaults:")
+            for margin in (float(m) for m in args.margins.split(",")):
+                for t in tracking(details, margin, args.tolerance, (lo, hi), args.required):
+                    entry["tracking"].append(asdict(t))
+                    print(
+                        f"    margin >= {margin}, {t.half} half: +{t.added} loops, {t.false} "
+                        f"false {t.false_examples}"
+                    )
+        record[str(path)] = entry
+    if args.out:
+        args.out.write_text(json.dumps(record, indent=1))
+
+
+if __name__ == "__main__":
+    main()

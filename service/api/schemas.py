@@ -173,7 +173,8 @@ class SequenceOut(BaseModel):
         0.0,
         description="The margin this sequence needed to pass: LOOPNET_SEQUENCE_MARGIN_MIN_OWN_RUN "
         "when its place lies on the robot's own current sequence (a revisit within one run), "
-        "else LOOPNET_SEQUENCE_MARGIN_MIN.",
+        "else LOOPNET_SEQUENCE_MARGIN_MIN; LOOPNET_SEQUENCE_MARGIN_MIN_TRACKING when lower and "
+        "the place continues the loop the robot's previous observation closed (1-2 frames on).",
     )
     contrast_frames: int = Field(
         0,

@@ -16,7 +16,8 @@ class SequenceAnswer:
     query frame, oldest first (None where the reference trajectory had none). ``margin`` is the
     score minus that of the best rival place (``rival_frame_id``, None when no other place was
     scored: the rival counts as 0); ``margin_min``: the margin it needed (its place on the
-    robot's own current sequence or another, :func:`~service.ml.sequences.margin_needed`);
+    robot's own current sequence or another, or continuing the robot's last loop,
+    :func:`~service.ml.sequences.margin_needed`);
     ``passed``: a loop on the sequence's own evidence.
     ``contrast_frames``: the robot's earlier frames the newest was contrasted with (0: scored on
     plain vectors, :mod:`service.ml.sequences.contrast`)."""

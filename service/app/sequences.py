@@ -137,15 +137,10 @@ class SequenceScorer:
             session, state.atlas_id, robot, longest, self.settings.sequence_max_gap_seconds
         )
         kept = repo.frame_proposals(session, frame_ids=previous)
-        last_loop = repo.observed_loop(session, frame_id=previous[-1]) if previous else None
         with self.maps.hold(session, state) as view:
             positions = view.positions(previous)
             earlier = [
-                Earlier(
-                    int(p),
-                    self._positions(view, kept[frame_id]) if frame_id in kept else None,
-                    self._loop_position(view, last_loop) if frame_id == previous[-1] else None,
-                )
+                self._earlier(view, int(p), kept.get(frame_id), newest=frame_id == previous[-1])
                 for frame_id, p in zip(previous, positions, strict=True)
                 if p >= 0
             ]
@@ -296,13 +291,20 @@ class SequenceScorer:
         vector = contrasted_query(newest, view.lookup(before))
         return vector, len(before) if vector is not None else 0
 
-    @staticmethod
-    def _loop_position(view: SequenceMap, frame_id: int | None) -> int | None:
-        """Map position of a loop's frame (None: no loop, or the map no longer holds it)."""
-        if frame_id is None:
-            return None
-        position = int(view.positions([frame_id])[0])
-        return position if position >= 0 else None
+    @classmethod
+    def _earlier(
+        cls, view: SequenceMap, position: int, kept: repo.Kept | None, *, newest: bool
+    ) -> Earlier:
+        """An earlier frame at map ``position`` with what its observation kept (None: stored
+        without a search); the loop it closed is read for the newest one only (loop tracking),
+        None where the map no longer holds that loop's frame."""
+        if kept is None:
+            return Earlier(position, None)
+        loop = None
+        if newest and kept.loop_frame_id is not None:
+            held = int(view.positions([kept.loop_frame_id])[0])
+            loop = held if held >= 0 else None
+        return Earlier(position, cls._positions(view, kept.proposals), loop)
 
     @staticmethod
     def _positions(view: SequenceMap, frame_ids: Sequence[int] | np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import func, select
@@ -155,25 +155,27 @@ def add_frame(
     return frame
 
 
-def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, np.ndarray]:
-    """The stored proposals (int64 frame ids, best first) of those of ``frame_ids`` that have
-    them."""
+class Kept(NamedTuple):
+    """What an observed frame's observation kept: its search's proposals (int64 frame ids,
+    best first) and the frame it closed a loop with (None: no loop)."""
+
+    proposals: np.ndarray
+    loop_frame_id: int | None
+
+
+def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, Kept]:
+    """What the observations of those of ``frame_ids`` that have a row kept, in one read."""
     if not frame_ids:
         return {}
     rows = session.execute(
-        select(FrameProposals.frame_id, FrameProposals.frame_ids).where(
-            FrameProposals.frame_id.in_(list(frame_ids))
-        )
+        select(
+            FrameProposals.frame_id, FrameProposals.frame_ids, FrameProposals.loop_frame_id
+        ).where(FrameProposals.frame_id.in_(list(frame_ids)))
     )
-    return {int(i): np.frombuffer(blob, dtype="<i4").astype(np.int64) for i, blob in rows}
-
-
-def observed_loop(session: Session, *, frame_id: int) -> int | None:
-    """The frame the observation that stored ``frame_id`` closed a loop with (None: it closed
-    none, or the frame was not stored by an observation)."""
-    return session.scalar(
-        select(FrameProposals.loop_frame_id).where(FrameProposals.frame_id == frame_id)
-    )
+    return {
+        int(i): Kept(np.frombuffer(blob, dtype="<i4").astype(np.int64), loop)
+        for i, blob, loop in rows
+    }
 
 
 def get_frame(session: Session, *, atlas: Atlas, frame_id: int) -> Frame:

@@ -68,10 +68,9 @@ def continues_loop(trajectories: Trajectories, reference: int, previous_loop: in
     """Whether map frame ``reference`` continues the loop the robot's previous observation
     closed at map frame ``previous_loop`` (None: it closed none): the same trajectory, 1-2
     frames further along it (:data:`TRACKING_STEPS`)."""
-    if (
-        previous_loop is None
-        or trajectories.sequence[reference] != (trajectories.sequence[previous_loop])
-    ):
+    if previous_loop is None:
+        return False
+    if trajectories.sequence[reference] != trajectories.sequence[previous_loop]:
         return False
     step = int(trajectories.rank[reference]) - int(trajectories.rank[previous_loop])
     return TRACKING_STEPS[0] <= step <= TRACKING_STEPS[1]

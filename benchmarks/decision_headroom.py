@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from service.evaluation.served_pass import PARTS
+
 
 @dataclass(frozen=True)
 class Ceiling:
@@ -65,7 +67,8 @@ def ceiling(row: dict[str, Any]) -> Ceiling:
     details = row["details"]
     right = np.array(details["per_query_right"], bool)
     closable = np.array(details["per_query_closable"], bool)
-    inliers = np.expm1(np.array(details["per_query_parts"], float)[:, 0])
+    parts = np.array(details["per_query_parts"], float)
+    inliers = np.expm1(parts[:, PARTS.index("inliers")])  # the part is log(1 + inliers)
     left_out = inliers[right & ~closable]
     left_out = left_out[~np.isnan(left_out)]
     return Ceiling(

@@ -127,7 +127,7 @@ def main() -> None:
     parser.add_argument("reports", nargs="+", type=Path)
     parser.add_argument("--tolerance", type=int, required=True, help="frames either side")
     parser.add_argument("--margins", default="2,2.5,3,3.5")
-    parser.add_argument("--steps", default="1,2", help="continuation window along the route")
+    parser.add_argument("--steps", default="1,1", help="continuation window along the route")
     parser.add_argument("--required", type=int, default=3, help="aligned frames at least")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()

@@ -174,7 +174,7 @@ class SequenceOut(BaseModel):
         description="The margin this sequence needed to pass: LOOPNET_SEQUENCE_MARGIN_MIN_OWN_RUN "
         "when its place lies on the robot's own current sequence (a revisit within one run), "
         "else LOOPNET_SEQUENCE_MARGIN_MIN; LOOPNET_SEQUENCE_MARGIN_MIN_TRACKING when lower and "
-        "the place continues the loop the robot's previous observation closed (1-2 frames on).",
+        "the place continues the loop the robot's previous observation closed (the next frame).",
     )
     contrast_frames: int = Field(
         0,

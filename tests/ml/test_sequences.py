@@ -341,15 +341,15 @@ def test_a_look_alike_stretch_has_a_small_margin_and_the_true_place_a_large_one(
 
 
 def test_a_place_continues_the_last_loop_only_just_ahead_on_its_trajectory() -> None:
-    """Loop tracking: 1-2 frames on along the loop's own trajectory continue it; at the same
-    frame (a lagging track), behind it, further ahead, or on another trajectory, the full
-    margin applies again."""
+    """Loop tracking: the next frame along the loop's own trajectory continues it; at the same
+    frame (a lagging track), behind it, two or more ahead (a jumping track), or on another
+    trajectory, the full margin applies again."""
     two_routes = Trajectories.single(40, np.arange(40) == 20)  # frames 0-19 and 20-39
     assert [continues_loop(two_routes, r, 10) for r in (9, 10, 11, 12, 13)] == [
         False,
         False,
         True,
-        True,
+        False,
         False,
     ]
     assert not continues_loop(two_routes, 20, 19)  # the next trajectory

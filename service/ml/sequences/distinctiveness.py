@@ -55,25 +55,28 @@ def distinctiveness(
     return Distinctiveness(best.score, None)
 
 
-# How far along its trajectory a sequence's place may lie past the place the robot's previous
-# observation closed a loop with, and still continue that loop: a moving robot passes about one
-# reference frame per frame (SequenceSettings.speeds 0.8-1.25), so 1-2. A window of -1..3 let
-# tracking drift two frames off on Nordland (benchmarks/decision_headroom.py), and 0..2 let it
-# lag behind a robot that moved on (three false loops in eval-online's replay, each 2 frames
-# behind). A robot standing still loses the track and needs the full margin again.
-TRACKING_STEPS = (1, 2)
+# How far along its trajectory a sequence's place must lie past the place the robot's previous
+# observation closed a loop with, to continue that loop: exactly one frame. The sequence model
+# aligns one map frame per query frame at every speed it tries (SequenceSettings.speeds
+# 0.8-1.25 round to 1), so the same hypothesis one frame on is the next frame; any other step
+# is the hypothesis jumping. Wider windows closed false loops on Nordland: -1..3 let tracking
+# drift two frames off (benchmarks/decision_headroom.py), 0..2 let it lag behind a robot that
+# moved on, and 1..2 let it run ahead (eval-online: winter frame 237 onto summer 239 after a
+# loop at 237, on an AVX-512 machine; benchmarks/RESULTS.md, issue 25, stops 41-42). A robot
+# standing still, or one that outruns the map, loses the track and needs the full margin again.
+TRACKING_STEP = 1
 
 
 def continues_loop(trajectories: Trajectories, reference: int, previous_loop: int | None) -> bool:
     """Whether map frame ``reference`` continues the loop the robot's previous observation
-    closed at map frame ``previous_loop`` (None: it closed none): the same trajectory, 1-2
-    frames further along it (:data:`TRACKING_STEPS`)."""
+    closed at map frame ``previous_loop`` (None: it closed none): the same trajectory, one
+    frame further along it (:data:`TRACKING_STEP`)."""
     if previous_loop is None:
         return False
     if trajectories.sequence[reference] != trajectories.sequence[previous_loop]:
         return False
     step = int(trajectories.rank[reference]) - int(trajectories.rank[previous_loop])
-    return TRACKING_STEPS[0] <= step <= TRACKING_STEPS[1]
+    return step == TRACKING_STEP
 
 
 def margin_needed(

@@ -16,6 +16,10 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    only: the newest frame's own z (the service's third sequence condition) is not in the
    report, so the added loops are an upper bound. Needs frame-aligned ground truth (query i
    right on references i +- ``tolerance``).
+3. **What sets the sequence margin.** The wrong sequence answers' margins by how far their
+   place lies from the right one (just outside the tolerance, a few frames off, far): the
+   largest wrong margin is what ``LOOPNET_SEQUENCE_MARGIN_MIN`` must stay above. Frame-aligned
+   ground truth again.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -122,6 +126,34 @@ def tracking(
     return out
 
 
+@dataclass(frozen=True)
+class WrongMargins:
+    offsets: str  # how far the wrong answers' places lie from the query's frame
+    answers: int
+    top: list[float]  # the largest margins, largest first
+
+
+# bands of |reference - query| beyond the tolerance: just outside it, a few frames, far
+OFFSET_BANDS = ((1, 2), (3, 9), (10, None))
+
+
+def wrong_margins(details: dict[str, Any], tolerance: int) -> list[WrongMargins]:
+    """The margins of the sequence answers whose place is wrong, per band of how far off it
+    lies (the band's bounds count frames past the tolerance)."""
+    sequences = np.array(details["per_query_sequence"], float)
+    held = ~np.isnan(sequences[:, 0])
+    off = np.abs(sequences[:, 0] - np.arange(len(sequences))) - tolerance
+    out = []
+    for lo, hi in OFFSET_BANDS:
+        band = held & (off >= lo) & (off <= (np.inf if hi is None else hi))
+        top = np.sort(sequences[band, 1])[::-1][:5]
+        near = tolerance + lo, "" if hi is None else tolerance + hi
+        out.append(
+            WrongMargins(f"{near[0]}-{near[1]} frames", int(band.sum()), top.round(2).tolist())
+        )
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path)
@@ -135,7 +167,7 @@ def main() -> None:
     record: dict[str, Any] = {}
     for path in args.reports:
         report = json.loads(path.read_text())
-        entry: dict[str, Any] = {"ceilings": [], "tracking": []}
+        entry: dict[str, Any] = {"ceilings": [], "tracking": [], "wrong_margins": []}
         print(f"== {path}")
         for row in served_rows(report):
             c = ceiling(row)
@@ -158,6 +190,10 @@ def main() -> None:
                         f"    margin >= {margin}, {t.half} half: +{t.added} loops, {t.false} "
                         f"false {t.false_examples}"
                     )
+            print("  wrong sequence answers' margins, by how far off their place lies:")
+            for w in wrong_margins(details, args.tolerance):
+                entry["wrong_margins"].append(asdict(w))
+                print(f"    {w.offsets}: {w.answers} answers, largest margins {w.top}")
         record[str(path)] = entry
     if args.out:
         args.out.write_text(json.dumps(record, indent=1))

@@ -20,6 +20,10 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    place lies from the right one (just outside the tolerance, a few frames off, far): the
    largest wrong margin is what ``LOOPNET_SEQUENCE_MARGIN_MIN`` must stay above. Frame-aligned
    ground truth again.
+4. **Continued loops in a replay** (``--online OUT/online.json`` from ``loopnet eval-online``):
+   every loop whose previous frame closed one too, by its step along the route and whether its
+   sequence margin was below the cross-run margin (4, so only tracking could close it), right
+   or false.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -154,9 +158,30 @@ def wrong_margins(details: dict[str, Any], tolerance: int) -> list[WrongMargins]
     return out
 
 
+CROSS_RUN_MARGIN = 4.0  # LOOPNET_SEQUENCE_MARGIN_MIN's default
+
+
+def continued_loops(replay: dict[str, Any]) -> dict[str, int]:
+    """``"step S, margin below 4|4 or more, right|false" -> loops`` of one served replay row
+    of ``eval-online``'s online.json (its ``per_frame`` answers)."""
+    frames = replay["per_frame"]
+    status, reference, right = frames["status"], frames["reference"], frames["right"]
+    margins = np.array(frames["parts"], float)[:, PARTS.index("sequence")]
+    counts: dict[str, int] = {}
+    for i in range(1, len(status)):
+        if status[i] != "loop" or status[i - 1] != "loop":
+            continue
+        below = "below 4" if margins[i] < CROSS_RUN_MARGIN else "4 or more"
+        key = f"step {reference[i] - reference[i - 1]}, margin {below}, "
+        key += "right" if right[i] else "false"
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("reports", nargs="+", type=Path)
+    parser.add_argument("reports", nargs="*", type=Path)
+    parser.add_argument("--online", type=Path, help="an eval-online online.json: part 4 only")
     parser.add_argument("--tolerance", type=int, required=True, help="frames either side")
     parser.add_argument("--margins", default="2,2.5,3,3.5")
     parser.add_argument("--steps", default="1,1", help="continuation window along the route")
@@ -165,6 +190,14 @@ def main() -> None:
     args = parser.parse_args()
     lo, hi = (int(v) for v in args.steps.split(","))
     record: dict[str, Any] = {}
+    if args.online:
+        for replay in json.loads(args.online.read_text())["rows"]:
+            if replay.get("per_frame"):
+                counts = continued_loops(replay)
+                record[f"{args.online}:{replay['method']}"] = counts
+                print(f"== {replay['method']}: loops continuing the previous frame's loop")
+                for key, count in counts.items():
+                    print(f"    {key}: {count}")
     for path in args.reports:
         report = json.loads(path.read_text())
         entry: dict[str, Any] = {"ceilings": [], "tracking": [], "wrong_margins": []}

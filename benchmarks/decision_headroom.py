@@ -182,12 +182,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="*", type=Path)
     parser.add_argument("--online", type=Path, help="an eval-online online.json: part 4 only")
-    parser.add_argument("--tolerance", type=int, required=True, help="frames either side")
+    parser.add_argument("--tolerance", type=int, help="frames either side (reports only)")
     parser.add_argument("--margins", default="2,2.5,3,3.5")
     parser.add_argument("--steps", default="1,1", help="continuation window along the route")
     parser.add_argument("--required", type=int, default=3, help="aligned frames at least")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.reports and args.tolerance is None:
+        parser.error("--tolerance is needed to read loopnet eval reports")
     lo, hi = (int(v) for v in args.steps.split(","))
     record: dict[str, Any] = {}
     if args.online:

@@ -364,6 +364,30 @@ def test_a_revisit_within_one_run_needs_the_own_run_margin(
     assert (answers[-1].status == "loop") is not own
 
 
+def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
+    data_dir: Path, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys closes its loop at place 24; then the rover turns off the mapped
+    route: its next frame shows a place the map does not hold. Its four earlier frames still
+    align along the mapper's trajectory, so the sequence names place 25 with a margin above
+    the one it needs (the tracking margin: 25 continues the loop at 24); only the newest
+    frame's own evidence for 25 is missing, and that alone keeps the answer from a loop
+    (service.app.sequences.NEWEST_Z_MIN)."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
+        unmapped = features(0.9 * G[PLACES + 1] + G[DECOYS[5]])  # not on the map's route
+        off = observe(client, unmapped, 105.0, sequence_length=5)
+    sequence = off.sequence
+    assert sequence is not None and sequence.frame_id == ids[25]
+    assert sequence.margin_min == 2.5  # the tracking margin's default: it continues the loop
+    assert sequence.margin >= sequence.margin_min and sequence.length >= 3
+    assert not sequence.passed
+    assert off.status != "loop" and off.loop_frame_id is None
+
+
 @pytest.mark.parametrize("tracking", [1.0, None])
 def test_a_loop_the_robot_just_closed_is_continued_from_the_tracking_margin(
     data_dir: Path, pipeline, tracking: float | None

@@ -124,7 +124,7 @@ class Observations:
             fields=fields,
             features=features,
             proposals=result.proposals,
-            loop_frame_id=result.loop_frame_id if result.status == "loop" else None,
+            loop_frame_id=result.loop_frame_id,  # set only for a loop
         )
         return result, frame
 

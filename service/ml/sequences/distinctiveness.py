@@ -19,6 +19,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from service.ml.sequences.scoring import SequenceMatch
 from service.ml.sequences.trajectories import Trajectories
 
@@ -73,10 +75,8 @@ def continues_loop(trajectories: Trajectories, reference: int, previous_loop: in
     frame further along it (:data:`TRACKING_STEP`)."""
     if previous_loop is None:
         return False
-    if trajectories.sequence[reference] != trajectories.sequence[previous_loop]:
-        return False
-    step = int(trajectories.rank[reference]) - int(trajectories.rank[previous_loop])
-    return step == TRACKING_STEP
+    ahead = trajectories.step(np.array(previous_loop), np.array(TRACKING_STEP))
+    return int(ahead) == reference
 
 
 def margin_needed(

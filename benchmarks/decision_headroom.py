@@ -22,8 +22,8 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    ground truth again.
 4. **Continued loops in a replay** (``--online OUT/online.json`` from ``loopnet eval-online``):
    every loop whose previous frame closed one too, by its step along the route and whether its
-   sequence margin was below the cross-run margin (4, so only tracking could close it), right
-   or false.
+   sequence margin was below the cross-run margin the replay ran with (``--cross-run-margin``,
+   default the setting's: only tracking could close it), right or false.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -39,7 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from service.config_sections import SequenceSettings
 from service.evaluation.served_pass import PARTS
+from service.ml.sequences.distinctiveness import TRACKING_STEP
 
 
 @dataclass(frozen=True)
@@ -158,12 +160,9 @@ def wrong_margins(details: dict[str, Any], tolerance: int) -> list[WrongMargins]
     return out
 
 
-CROSS_RUN_MARGIN = 4.0  # LOOPNET_SEQUENCE_MARGIN_MIN's default
-
-
-def continued_loops(replay: dict[str, Any]) -> dict[str, int]:
-    """``"step S, margin below 4|4 or more, right|false" -> loops`` of one served replay row
-    of ``eval-online``'s online.json (its ``per_frame`` answers)."""
+def continued_loops(replay: dict[str, Any], cross_run_margin: float) -> dict[str, int]:
+    """``"step S, margin below M|M or more, right|false" -> loops`` of one served replay row
+    of ``eval-online``'s online.json (its ``per_frame`` answers), M the cross-run margin."""
     frames = replay["per_frame"]
     status, reference, right = frames["status"], frames["reference"], frames["right"]
     margins = np.array(frames["parts"], float)[:, PARTS.index("sequence")]
@@ -171,7 +170,9 @@ def continued_loops(replay: dict[str, Any]) -> dict[str, int]:
     for i in range(1, len(status)):
         if status[i] != "loop" or status[i - 1] != "loop":
             continue
-        below = "below 4" if margins[i] < CROSS_RUN_MARGIN else "4 or more"
+        below = f"below {cross_run_margin:g}"
+        if margins[i] >= cross_run_margin:
+            below = f"{cross_run_margin:g} or more"
         key = f"step {reference[i] - reference[i - 1]}, margin {below}, "
         key += "right" if right[i] else "false"
         counts[key] = counts.get(key, 0) + 1
@@ -184,7 +185,17 @@ def main() -> None:
     parser.add_argument("--online", type=Path, help="an eval-online online.json: part 4 only")
     parser.add_argument("--tolerance", type=int, help="frames either side (reports only)")
     parser.add_argument("--margins", default="2,2.5,3,3.5")
-    parser.add_argument("--steps", default="1,1", help="continuation window along the route")
+    parser.add_argument(
+        "--steps",
+        default=f"{TRACKING_STEP},{TRACKING_STEP}",
+        help="continuation window along the route (default: the service's step)",
+    )
+    parser.add_argument(
+        "--cross-run-margin",
+        type=float,
+        default=SequenceSettings.model_fields["sequence_margin_min"].default,
+        help="the LOOPNET_SEQUENCE_MARGIN_MIN the replay ran with (--online)",
+    )
     parser.add_argument("--required", type=int, default=3, help="aligned frames at least")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -195,7 +206,7 @@ def main() -> None:
     if args.online:
         for replay in json.loads(args.online.read_text())["rows"]:
             if replay.get("per_frame"):
-                counts = continued_loops(replay)
+                counts = continued_loops(replay, args.cross_run_margin)
                 record[f"{args.online}:{replay['method']}"] = counts
                 print(f"== {replay['method']}: loops continuing the previous frame's loop")
                 for key, count in counts.items():

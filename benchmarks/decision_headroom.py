@@ -11,8 +11,9 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    inliers of the right answers left out (below the fitted minimum or not).
 2. **Loop tracking, offline.** A robot's row (``observe``): after a loop, a sequence whose
    place continues the previous loop's along its trajectory (``step`` frames on) is accepted
-   from a lower margin. Counted per half of the queries (route order) with the loops it adds
-   and how many are false. Choose on the FIRST half, read the second as held out. Offline
+   from a lower margin. ``--dropout G`` continues the newest loop up to G frames back (a
+   track lost for a frame or two, ``G x step`` frames on). Counted per half of the queries
+   (route order) with the loops it adds and how many are false. Choose on the FIRST half, read the second as held out. Offline
    only: the newest frame's own z (the service's third sequence condition) is not in the
    report, so the added loops are an upper bound. Needs frame-aligned ground truth (query i
    right on references i +- ``tolerance``).
@@ -109,19 +110,30 @@ def loop_frames(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def tracking(
-    details: dict[str, Any], margin: float, tolerance: int, steps: tuple[int, int], required: int
+    details: dict[str, Any],
+    margin: float,
+    tolerance: int,
+    steps: tuple[int, int],
+    required: int,
+    dropout: int = 1,
 ) -> list[Tracking]:
-    """The loops tracking at ``margin`` adds, per half, and the false ones among them."""
+    """The loops tracking at ``margin`` adds, per half, and the false ones among them. The loop
+    continued is the newest within ``dropout`` frames back (1: the previous frame's only), and
+    ``steps`` scale with how far back it lies (a frame along the route per frame driven)."""
     sequences = np.array(details["per_query_sequence"], float)
     loop, frames = loop_frames(details)
     n = len(loop)
     added: list[tuple[int, int, float, bool]] = []
     for i in range(1, n):
-        if loop[i] or not loop[i - 1] or np.isnan(sequences[i, 0]):
+        if loop[i] or np.isnan(sequences[i, 0]):
             continue
+        back = [g for g in range(1, min(dropout, i) + 1) if loop[i - g]]
+        if not back:
+            continue
+        g = back[0]
         reference, seq_margin, length = int(sequences[i, 0]), sequences[i, 1], sequences[i, 2]
-        step = reference - frames[i - 1]
-        if steps[0] <= step <= steps[1] and seq_margin >= margin and length >= required:
+        step = reference - frames[i - g]
+        if g * steps[0] <= step <= g * steps[1] and seq_margin >= margin and length >= required:
             loop[i], frames[i] = True, reference  # tracked: the next frame may continue it
             added.append((i, reference, float(seq_margin), abs(reference - i) > tolerance))
     out = []
@@ -197,6 +209,12 @@ def main() -> None:
         help="the LOOPNET_SEQUENCE_MARGIN_MIN the replay ran with (--online)",
     )
     parser.add_argument("--required", type=int, default=3, help="aligned frames at least")
+    parser.add_argument(
+        "--dropout",
+        type=int,
+        default=1,
+        help="continue the newest loop up to this many frames back (1: the previous frame's)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.reports and args.tolerance is None:
@@ -228,9 +246,14 @@ def main() -> None:
             if not any(not math.isnan(s[0]) for s in sequences):
                 continue
             loops = sum(s == "loop" for s in details["per_query_status"])
-            print(f"  loop tracking (steps {lo}..{hi}) on {loops} loops at the defaults:")
+            print(
+                f"  loop tracking (steps {lo}..{hi}, loops up to {args.dropout} frames back) "
+                f"on {loops} loops at the defaults:"
+            )
             for margin in (float(m) for m in args.margins.split(",")):
-                for t in tracking(details, margin, args.tolerance, (lo, hi), args.required):
+                for t in tracking(
+                    details, margin, args.tolerance, (lo, hi), args.required, args.dropout
+                ):
                     entry["tracking"].append(asdict(t))
                     print(
                         f"    margin >= {margin}, {t.half} half: +{t.added} loops, {t.false} "

@@ -176,6 +176,12 @@ class SequenceOut(BaseModel):
         "else LOOPNET_SEQUENCE_MARGIN_MIN; LOOPNET_SEQUENCE_MARGIN_MIN_TRACKING when lower and "
         "the place continues the loop the robot's previous observation closed (the next frame).",
     )
+    aligned_z: list[float] = Field(
+        default_factory=list,
+        description="Each frame's own evidence for its aligned reference frame, oldest first: "
+        "its similarity standardised as the score's terms are (0 where none aligned). The last "
+        "is this query's; a sequence passes only where it is at least 1.",
+    )
     contrast_frames: int = Field(
         0,
         description="How many of the robot's frames just before this one the sequence was "

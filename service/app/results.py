@@ -20,7 +20,9 @@ class SequenceAnswer:
     :func:`~service.ml.sequences.margin_needed`);
     ``passed``: a loop on the sequence's own evidence.
     ``contrast_frames``: the robot's earlier frames the newest was contrasted with (0: scored on
-    plain vectors, :mod:`service.ml.sequences.contrast`)."""
+    plain vectors, :mod:`service.ml.sequences.contrast`). ``aligned_z``: each frame's own
+    evidence for its aligned frame (standardised similarity, oldest first; the newest one's
+    must reach :data:`~service.app.sequences.NEWEST_Z_MIN`)."""
 
     score: float
     length: int
@@ -32,6 +34,7 @@ class SequenceAnswer:
     passed: bool
     contrast_frames: int = 0
     margin_min: float = 0.0
+    aligned_z: list[float] = field(default_factory=list)
 
 
 @dataclass

@@ -270,6 +270,7 @@ class SequenceScorer:
             rival_frame_id=int(view.ids[distinct.rival]) if distinct.rival is not None else None,
             contrast_frames=contrast_frames,
             margin_min=needed,
+            aligned_z=[round(z, 3) for z in best.aligned_z],
             passed=bool(
                 distinct.margin >= needed
                 and best.length >= self.consistency.required

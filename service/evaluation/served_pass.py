@@ -77,6 +77,8 @@ class ServedAnswers:
     closable: list[bool] = field(default_factory=list)
     # per query, the robot's sequence (reference, margin, length, passed; NaN: none)
     sequences: list[list[float]] = field(default_factory=list)
+    # per query, the sequence's aligned_z (each frame's own evidence, oldest first; []: none)
+    sequence_z: list[list[float]] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -90,6 +92,7 @@ class ServedAnswers:
             probability_alone=self.probability_alone[keep],
             closable=[self.closable[i] for i in keep],
             sequences=[self.sequences[i] for i in keep] if self.sequences else [],
+            sequence_z=[self.sequence_z[i] for i in keep] if self.sequence_z else [],
         )
 
 
@@ -140,6 +143,7 @@ def served_answers(
     closable: list[bool] = []
     candidates: list[list[list[float]]] = []
     sequences: list[list[float]] = []
+    sequence_z: list[list[float]] = []
     with served_settings(service, extractor) as settings:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
@@ -173,6 +177,7 @@ def served_answers(
             parts.append(decision_parts(answer))
             candidates.append(candidate_rows(answer, frame_to_reference))
             sequences.append(sequence_row(answer, frame_to_reference))
+            sequence_z.append(list(answer.sequence.aligned_z) if answer.sequence else [])
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -190,6 +195,7 @@ def served_answers(
         np.array(alone, np.float64),
         closable,
         sequences,
+        sequence_z,
     )
 
 
@@ -286,6 +292,7 @@ def served_method(
         "per_query_status": served.status,
         "per_query_candidates": served.candidates,
         "per_query_sequence": served.sequences,
+        "per_query_sequence_z": served.sequence_z,
         "per_query_closable": [int(c) for c in served.closable],
         "per_query_right": right.astype(int).tolist(),
     }

@@ -386,6 +386,10 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
     assert sequence.margin >= sequence.margin_min and sequence.length >= 3
     assert not sequence.passed
     assert off.status != "loop" and off.loop_frame_id is None
+    # the answer says which evidence failed: the newest frame's own, not its four before
+    assert len(sequence.aligned_z) == 5 and sequence.aligned_z[-1] < 1.0
+    assert min(sequence.aligned_z[:-1]) >= 1.0
+    assert answers[-1].sequence is not None and answers[-1].sequence.aligned_z[-1] >= 1.0
 
 
 @pytest.mark.parametrize("tracking", [1.0, None])

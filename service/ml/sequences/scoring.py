@@ -154,6 +154,8 @@ class SequenceMatch:
         similarity: plain cosine of the newest query frame and ``reference``.
         newest_z: that similarity standardised as the score's terms are: how much the newest
             frame alone favours ``reference``.
+        aligned_z: every query frame's standardised similarity with its aligned map frame (the
+            score's terms), oldest first; 0 where none aligned. The last is ``newest_z``.
     """
 
     reference: int
@@ -163,6 +165,7 @@ class SequenceMatch:
     aligned: tuple[int, ...]
     similarity: float
     newest_z: float
+    aligned_z: tuple[float, ...] = ()
 
 
 def propose_candidates(
@@ -309,6 +312,7 @@ def score_candidates(
                 aligned=tuple(int(f) for f in aligned[c, s, ::-1]),
                 similarity=float(similarity[n - 1, newest_column[c]]),
                 newest_z=float(z_aligned[c, s, 0]),
+                aligned_z=tuple(float(z) for z in z_aligned[c, s, ::-1]),
             )
         )
     return matches

@@ -11,6 +11,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings
 
 from service.ml.decision import DEFAULT_RIVAL_GAP
+from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
 from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE
 
 
@@ -269,9 +270,9 @@ class SequenceSettings(BaseSettings):
         2.5,
         ge=0.0,
         description="Loop tracking: the margin a robot's sequence needs when its place continues "
-        "the loop the robot's previous observation closed (the same trajectory, the next frame "
-        "along it); the first loop of a revisit still needs sequence_margin_min (or the own-run "
-        "margin). 2.5: above every false loop a wider window (-1..3 frames) let tracking close "
+        f"the robot's newest loop within its last {TRACKING_DROPOUT} frames (the same trajectory, "
+        "a frame along it per frame driven since); the first loop of a revisit still needs sequence_margin_min "
+        "(or the own-run margin). 2.5: above every false loop a wider window (-1..3 frames) let tracking close "
         "on the first half of Nordland's queries (margins 2.16-2.33); continuing by one frame, "
         "none down to 1.5 added one (benchmarks/decision_headroom.py). Unset: no tracking.",
     )

@@ -12,6 +12,7 @@ from service.api.closed_sets import (
     PlaceStatusValue,
 )
 from service.app.names import NAME_PATTERN
+from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
 
 
 class ErrorOut(BaseModel):
@@ -174,7 +175,8 @@ class SequenceOut(BaseModel):
         description="The margin this sequence needed to pass: LOOPNET_SEQUENCE_MARGIN_MIN_OWN_RUN "
         "when its place lies on the robot's own current sequence (a revisit within one run), "
         "else LOOPNET_SEQUENCE_MARGIN_MIN; LOOPNET_SEQUENCE_MARGIN_MIN_TRACKING when lower and "
-        "the place continues the loop the robot's previous observation closed (the next frame).",
+        f"the place continues the robot's newest loop within its last {TRACKING_DROPOUT} frames "
+        "(a frame along the trajectory per frame driven since).",
     )
     aligned_z: list[float] = Field(
         default_factory=list,

@@ -34,14 +34,11 @@ class RobotContext:
 
 @dataclass(frozen=True)
 class Earlier:
-    """One of the robot's earlier frames in its sequence: its map position, the map
-    positions of the matches its observation kept (None: stored without a search) and the map
-    position of the frame its observation closed a loop with (None: none, or not read: only
-    the newest earlier frame's is, for loop tracking)."""
+    """One of the robot's earlier frames in its sequence: its map position and the map
+    positions of the matches its observation kept (None: stored without a search)."""
 
     position: int
     proposals: np.ndarray | None
-    loop: int | None = None
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -37,6 +38,7 @@ from service.config import Settings
 from service.index import Hit
 from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import (
+    TRACKING_DROPOUT,
     ConsistencySettings,
     Hypothesis,
     SequenceSettings,
@@ -55,6 +57,28 @@ SERVICE_SEQUENCE = SequenceSettings(seed_frames=0)
 # of frames behind it, which must not make its first frame somewhere new a loop (on the
 # development sets this keeps 94-99% of the right sequence answers, 71-86% of the wrong ones).
 NEWEST_Z_MIN = 1.0
+
+
+class TrackedLoop(NamedTuple):
+    """The robot's newest loop within :data:`TRACKING_DROPOUT` frames: the map position it
+    closed with and how many frames the robot has driven since (1: its previous frame)."""
+
+    position: int
+    frames_since: int
+
+
+def newest_loop(
+    view: SequenceMap, previous: Sequence[int], kept: dict[int, repo.Kept]
+) -> TrackedLoop | None:
+    """The loop a sequence may continue (loop tracking): the newest one closed by the robot's
+    last :data:`TRACKING_DROPOUT` frames of this sequence (``previous``, oldest first), None
+    when none closed one or the map no longer holds its frame."""
+    for since, frame_id in enumerate(reversed(previous[-TRACKING_DROPOUT:]), start=1):
+        loop_frame = kept[frame_id].loop_frame_id if frame_id in kept else None
+        if loop_frame is not None:
+            held = int(view.positions([loop_frame])[0])
+            return TrackedLoop(held, since) if held >= 0 else None
+    return None
 
 
 def _similarity(view: SequenceMap, query: np.ndarray, frame_id: int) -> float | None:
@@ -140,7 +164,7 @@ class SequenceScorer:
         with self.maps.hold(session, state) as view:
             positions = view.positions(previous)
             earlier = [
-                self._earlier(view, int(p), kept.get(frame_id), newest=frame_id == previous[-1])
+                self._earlier(view, int(p), kept.get(frame_id))
                 for frame_id, p in zip(previous, positions, strict=True)
                 if p >= 0
             ]
@@ -161,6 +185,7 @@ class SequenceScorer:
                     eligible,
                     selection,
                     robot.sequence_length,
+                    newest_loop(view, previous, kept),
                 )
             past = self._previous(state, view, earlier, eligible, selection)
             return RobotEvidence(
@@ -207,10 +232,12 @@ class SequenceScorer:
         eligible: np.ndarray,
         selection: Selection,
         length: int,
+        tracked: TrackedLoop | None,
     ) -> SequenceAnswer | None:
-        """The best place for the sequence and its margin over the best rival. Candidates come
-        from the newest frame's hits and from the ``sequence_seed_frames`` - 1 earlier frames
-        (0: all): their kept proposals, or a search where none were kept."""
+        """The best place for the sequence and its margin over the best rival (the margin it
+        needs is lower where it continues the ``tracked`` loop). Candidates come from the
+        newest frame's hits and from the ``sequence_seed_frames`` - 1 earlier frames (0: all):
+        their kept proposals, or a search where none were kept."""
         settings = replace(
             SERVICE_SEQUENCE,
             length=length,
@@ -257,8 +284,9 @@ class SequenceScorer:
             earlier[-1].position if earlier else None,
             other_run=self.settings.sequence_margin_min,
             own_run=self.settings.sequence_margin_min_own_run,
-            previous_loop=earlier[-1].loop if earlier else None,
+            previous_loop=tracked.position if tracked else None,
             tracking=self.settings.sequence_margin_min_tracking,
+            frames_since=tracked.frames_since if tracked else 1,
         )
         return SequenceAnswer(
             score=round(float(best.score), 6),
@@ -293,19 +321,12 @@ class SequenceScorer:
         return vector, len(before) if vector is not None else 0
 
     @classmethod
-    def _earlier(
-        cls, view: SequenceMap, position: int, kept: repo.Kept | None, *, newest: bool
-    ) -> Earlier:
-        """An earlier frame at map ``position`` with what its observation kept (None: stored
-        without a search); the loop it closed is read for the newest one only (loop tracking),
-        None where the map no longer holds that loop's frame."""
+    def _earlier(cls, view: SequenceMap, position: int, kept: repo.Kept | None) -> Earlier:
+        """An earlier frame at map ``position`` with the matches its observation kept (None:
+        stored without a search)."""
         if kept is None:
             return Earlier(position, None)
-        loop = None
-        if newest and kept.loop_frame_id is not None:
-            held = int(view.positions([kept.loop_frame_id])[0])
-            loop = held if held >= 0 else None
-        return Earlier(position, cls._positions(view, kept.proposals), loop)
+        return Earlier(position, cls._positions(view, kept.proposals))
 
     @staticmethod
     def _positions(view: SequenceMap, frame_ids: Sequence[int] | np.ndarray) -> np.ndarray:

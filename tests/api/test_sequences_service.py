@@ -22,6 +22,7 @@ from service.app.ingest import FrameFields
 from service.app.results import QueryResult
 from service.features_payload import encode_features
 from service.ml.features import FrameFeatures, LocalFeatures
+from service.ml.sequences import TRACKING_DROPOUT
 from service.storage.models import FrameProposals
 from tests.conftest import make_settings, wait_ready
 
@@ -390,6 +391,30 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
     assert len(sequence.aligned_z) == 5 and sequence.aligned_z[-1] < 1.0
     assert min(sequence.aligned_z[:-1]) >= 1.0
     assert answers[-1].sequence is not None and answers[-1].sequence.aligned_z[-1] >= 1.0
+
+
+@pytest.mark.parametrize("dropped", [1, 2])
+def test_a_track_lost_for_a_frame_or_two_is_picked_up_again(
+    data_dir: Path, pipeline, dropped: int
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys closes its loop at place 24; then ``dropped`` frames show
+    nothing of the map (none closes a loop) and the rover is back on the route: its sequence
+    names the place as far along the route as it has driven since the loop, which continues
+    that loop (the tracking margin; no further back than TRACKING_DROPOUT frames, as
+    tests/ml/test_sequences.py checks)."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
+        for k in range(dropped):
+            lost = observe(client, features(G[PLACES + 1 + k]), 105.0 + k, sequence_length=5)
+            assert lost.status != "loop"
+        place = 24 + dropped + 1
+        back = observe(client, ambiguous(place, DECOYS[6]), 105.0 + dropped, sequence_length=5)
+    sequence = back.sequence
+    assert sequence is not None and sequence.frame_id == ids[place]
+    assert dropped < TRACKING_DROPOUT and sequence.margin_min == 2.5
 
 
 @pytest.mark.parametrize("tracking", [1.0, None])

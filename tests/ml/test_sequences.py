@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from service.ml.sequences import (
+    TRACKING_DROPOUT,
     ConsistencySettings,
     Distinctiveness,
     Hypothesis,
@@ -360,3 +361,21 @@ def test_a_place_continues_the_last_loop_only_just_ahead_on_its_trajectory() -> 
     assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=None, **margins) == 4.0
     # a tracking margin above the one that applies changes nothing
     assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=9.0, **margins) == 4.0
+
+
+def test_a_track_lost_for_a_frame_or_two_is_picked_up_where_the_robot_has_driven_since() -> None:
+    """Loop tracking across a dropout: a loop closed ``g`` frames ago is continued by the
+    frame ``g`` along its trajectory only, and not once the robot has driven further than
+    TRACKING_DROPOUT frames since it."""
+    route = Trajectories.single(40)
+    assert [continues_loop(route, r, 10, frames_since=2) for r in (11, 12, 13)] == [
+        False,
+        True,
+        False,
+    ]
+    assert continues_loop(route, 10 + TRACKING_DROPOUT, 10, frames_since=TRACKING_DROPOUT)
+    beyond = TRACKING_DROPOUT + 1
+    assert not continues_loop(route, 10 + beyond, 10, frames_since=beyond)
+    margins = {"other_run": 4.0, "own_run": 6.0, "tracking": 2.5}
+    assert margin_needed(route, 12, None, previous_loop=10, frames_since=2, **margins) == 2.5
+    assert margin_needed(route, 11, None, previous_loop=10, frames_since=2, **margins) == 4.0

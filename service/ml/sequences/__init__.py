@@ -12,6 +12,7 @@ from service.ml.sequences.consistency import (
     decide,
 )
 from service.ml.sequences.distinctiveness import (
+    TRACKING_DROPOUT,
     Distinctiveness,
     continues_loop,
     distinctiveness,
@@ -28,6 +29,7 @@ from service.ml.sequences.scoring import (
 from service.ml.sequences.trajectories import Trajectories, carried_timestamps, sequence_starts
 
 __all__ = [
+    "TRACKING_DROPOUT",
     "ConsistencySettings",
     "Distinctiveness",
     "Hypothesis",

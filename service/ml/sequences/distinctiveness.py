@@ -67,15 +67,24 @@ def distinctiveness(
 # loop at 237, on an AVX-512 machine; benchmarks/RESULTS.md, issue 25, stops 41-42). A robot
 # standing still, or one that outruns the map, loses the track and needs the full margin again.
 TRACKING_STEP = 1
+# How many frames back the loop a sequence may continue can lie: a track that misses a frame or
+# two (a bland frame, a frame whose own evidence fails NEWEST_Z_MIN) is picked up again where the
+# robot has driven since, ``TRACKING_STEP`` map frames per frame. On Nordland (L = 10) 3 frames
+# added 78 loops and no false one; 10 added 33 more, but on the off-route proxy one of them was
+# a false loop four frames into an unmapped detour (margin 3.19): a robot that has left the map
+# must not be carried along it for long (benchmarks/RESULTS.md, issue 25, stop 43).
+TRACKING_DROPOUT = 3
 
 
-def continues_loop(trajectories: Trajectories, reference: int, previous_loop: int | None) -> bool:
-    """Whether map frame ``reference`` continues the loop the robot's previous observation
-    closed at map frame ``previous_loop`` (None: it closed none): the same trajectory, one
-    frame further along it (:data:`TRACKING_STEP`)."""
-    if previous_loop is None:
+def continues_loop(
+    trajectories: Trajectories, reference: int, previous_loop: int | None, frames_since: int = 1
+) -> bool:
+    """Whether map frame ``reference`` continues the loop the robot closed ``frames_since``
+    frames ago at map frame ``previous_loop`` (None: none within reach): the same trajectory,
+    :data:`TRACKING_STEP` frames further along it per frame driven since."""
+    if previous_loop is None or not 1 <= frames_since <= TRACKING_DROPOUT:
         return False
-    ahead = trajectories.step(np.array(previous_loop), np.array(TRACKING_STEP))
+    ahead = trajectories.step(np.array(previous_loop), np.array(TRACKING_STEP * frames_since))
     return int(ahead) == reference
 
 
@@ -88,6 +97,7 @@ def margin_needed(
     own_run: float,
     previous_loop: int | None = None,
     tracking: float | None = None,
+    frames_since: int = 1,
 ) -> float:
     """The margin a sequence whose best place is map frame ``reference`` needs to be a loop
     on its own: ``own_run`` when that place lies on the asking robot's own current sequence
@@ -97,14 +107,17 @@ def margin_needed(
     own-run answers reached a margin of 5.99, wrong answers across runs 3.85
     (benchmarks/RESULTS.md, issue 25, stop 40).
 
-    Loop tracking: when the place continues the loop the robot's previous observation closed
-    (``previous_loop``, :func:`continues_loop`), ``tracking`` suffices if lower (None: off).
-    The first loop of a revisit needs the full margin; its continuation is the same hypothesis
-    one frame on, as a SLAM front end tracks a relocalisation once made."""
+    Loop tracking: when the place continues the robot's newest loop (closed at
+    ``previous_loop`` ``frames_since`` frames ago, :func:`continues_loop`), ``tracking``
+    suffices if lower (None: off). The first loop of a revisit needs the full margin; its
+    continuation is the same hypothesis a frame on per frame driven, as a SLAM front end tracks
+    a relocalisation once made."""
     own = own_frame is not None and (
         trajectories.sequence[reference] == trajectories.sequence[own_frame]
     )
     needed = own_run if own else other_run
-    if tracking is not None and continues_loop(trajectories, reference, previous_loop):
+    if tracking is not None and continues_loop(
+        trajectories, reference, previous_loop, frames_since
+    ):
         return min(needed, tracking)
     return needed

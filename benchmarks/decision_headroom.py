@@ -25,6 +25,10 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    every loop whose previous frame closed one too, by its step along the route and whether its
    sequence margin was below the cross-run margin the replay ran with (``--cross-run-margin``,
    default the setting's: only tracking could close it), right or false.
+5. **The recent frames' own evidence** (``--recent-z``): for guards "the mean ``aligned_z`` of
+   the sequence's last k frames is at least t", the loops closed by a passed sequence that each
+   would refuse, right and false (rightness as the report scored the answer, so any layout).
+   Offline: a refused loop would also stop the tracking that follows it, which is not counted.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -145,6 +149,32 @@ def tracking(
 
 
 @dataclass(frozen=True)
+class RecentGuard:
+    frames: int  # the sequence's last k frames
+    z_min: float  # their mean aligned_z at least this
+    refused_right: int
+    refused_false: int
+
+
+def recent_guards(details: dict[str, Any], thresholds: list[float]) -> list[RecentGuard]:
+    """What each guard on the mean ``aligned_z`` of the last 1-5 frames would refuse among the
+    loops a passed sequence closed."""
+    sequences = np.array(details["per_query_sequence"], float)
+    evidence = details["per_query_sequence_z"]
+    loop, _ = loop_frames(details)
+    right = np.array(details["per_query_right"], bool)
+    by_sequence = np.flatnonzero(loop & (sequences[:, 3] == 1))
+    out = []
+    for k in range(1, 6):
+        recent = np.array([np.mean(evidence[i][-k:]) for i in by_sequence])
+        for t in thresholds:
+            refused = by_sequence[recent < t]
+            wrong = int((~right[refused]).sum())
+            out.append(RecentGuard(k, t, len(refused) - wrong, wrong))
+    return out
+
+
+@dataclass(frozen=True)
 class WrongMargins:
     offsets: str  # how far the wrong answers' places lie from the query's frame
     answers: int
@@ -215,6 +245,10 @@ def main() -> None:
         default=1,
         help="continue the newest loop up to this many frames back (1: the previous frame's)",
     )
+    parser.add_argument(
+        "--recent-z",
+        help="part 5: comma-separated thresholds of the last frames' mean aligned_z",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.reports and args.tolerance is None:
@@ -258,6 +292,15 @@ def main() -> None:
                     print(
                         f"    margin >= {margin}, {t.half} half: +{t.added} loops, {t.false} "
                         f"false {t.false_examples}"
+                    )
+            if args.recent_z and details.get("per_query_sequence_z"):
+                thresholds = [float(t) for t in args.recent_z.split(",")]
+                print("  guards on the last k frames' mean aligned_z (loops refused):")
+                for g in recent_guards(details, thresholds):
+                    entry.setdefault("recent_guards", []).append(asdict(g))
+                    print(
+                        f"    last {g.frames}, mean >= {g.z_min}: {g.refused_right} right, "
+                        f"{g.refused_false} false"
                     )
             print("  wrong sequence answers' margins, by how far off their place lies:")
             for w in wrong_margins(details, args.tolerance):

@@ -184,6 +184,12 @@ class SequenceOut(BaseModel):
         "its similarity standardised as the score's terms are (0 where none aligned). The last "
         "is this query's; a sequence passes only where it is at least 1.",
     )
+    reason: str | None = Field(
+        None,
+        description='Why the sequence is not a loop on its own evidence, e.g. "margin 3.20 is '
+        'below 4.5" or "this frame\'s own evidence (aligned_z 0.41) is below 1"; null when it '
+        "passed.",
+    )
     contrast_frames: int = Field(
         0,
         description="How many of the robot's frames just before this one the sequence was "

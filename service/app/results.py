@@ -22,7 +22,8 @@ class SequenceAnswer:
     ``contrast_frames``: the robot's earlier frames the newest was contrasted with (0: scored on
     plain vectors, :mod:`service.ml.sequences.contrast`). ``aligned_z``: each frame's own
     evidence for its aligned frame (standardised similarity, oldest first; the newest one's
-    must reach :data:`~service.app.sequences.NEWEST_Z_MIN`)."""
+    must reach :data:`~service.app.sequences.NEWEST_Z_MIN`). ``reason``: why it did not pass
+    (None when it passed)."""
 
     score: float
     length: int
@@ -35,6 +36,7 @@ class SequenceAnswer:
     contrast_frames: int = 0
     margin_min: float = 0.0
     aligned_z: list[float] = field(default_factory=list)
+    reason: str | None = None
 
 
 @dataclass

@@ -81,6 +81,24 @@ def newest_loop(
     return None
 
 
+def sequence_shortfalls(
+    margin: float, needed: float, length: int, required: int, newest_z: float
+) -> list[str]:
+    """Why a sequence is not a loop on its own evidence, in an operator's words (empty: it
+    passed): too small a margin over its best rival, too few frames aligned, or a newest frame
+    that does not favour the place itself."""
+    out = []
+    if margin < needed:
+        out.append(f"margin {margin:.2f} is below {needed:g}")
+    if length < required:
+        out.append(f"{length} frames aligned, {required} needed")
+    if newest_z < NEWEST_Z_MIN:
+        out.append(
+            f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {NEWEST_Z_MIN:g}"
+        )
+    return out
+
+
 def _similarity(view: SequenceMap, query: np.ndarray, frame_id: int) -> float | None:
     """Cosine of ``query`` with the map's vector of ``frame_id`` (None: not held)."""
     position = view.positions([frame_id])[0]
@@ -288,6 +306,13 @@ class SequenceScorer:
             tracking=self.settings.sequence_margin_min_tracking,
             frames_since=tracked.frames_since if tracked else 1,
         )
+        shortfalls = sequence_shortfalls(
+            float(distinct.margin),
+            needed,
+            best.length,
+            self.consistency.required,
+            best.newest_z,
+        )
         return SequenceAnswer(
             score=round(float(best.score), 6),
             length=best.length,
@@ -299,11 +324,8 @@ class SequenceScorer:
             contrast_frames=contrast_frames,
             margin_min=needed,
             aligned_z=[round(z, 3) for z in best.aligned_z],
-            passed=bool(
-                distinct.margin >= needed
-                and best.length >= self.consistency.required
-                and best.newest_z >= NEWEST_Z_MIN
-            ),
+            passed=not shortfalls,
+            reason="; ".join(shortfalls) or None,
         )
 
     def _contrasted(

@@ -362,6 +362,7 @@ def test_a_revisit_within_one_run_needs_the_own_run_margin(
     assert newest is not None and newest.frame_id == ids[24] and newest.margin >= 3.0
     assert newest.margin_min == (50.0 if own else 3.0)
     assert newest.passed is not own
+    assert newest.reason == (f"margin {newest.margin:.2f} is below 50" if own else None)
     assert (answers[-1].status == "loop") is not own
 
 
@@ -389,6 +390,9 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
     assert off.status != "loop" and off.loop_frame_id is None
     # the answer says which evidence failed: the newest frame's own, not its four before
     assert len(sequence.aligned_z) == 5 and sequence.aligned_z[-1] < 1.0
+    assert sequence.reason == (
+        f"this frame's own evidence (aligned_z {sequence.aligned_z[-1]:.2f}) is below 1"
+    )
     assert min(sequence.aligned_z[:-1]) >= 1.0
     assert answers[-1].sequence is not None and answers[-1].sequence.aligned_z[-1] >= 1.0
 

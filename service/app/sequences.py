@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import NamedTuple
 
 import numpy as np
 from sqlalchemy.orm import Session
@@ -32,13 +31,13 @@ from service.app.filters import Selection
 from service.app.results import SequenceAnswer
 from service.app.robot_evidence import Earlier, RobotContext, RobotEvidence
 from service.app.sequence_map import SequenceMap, SequenceMaps
+from service.app.sequence_rules import TrackedLoop, newest_loop, sequence_shortfalls
 from service.app.state import LoadedAtlas
 from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.config import Settings
 from service.index import Hit
 from service.ml.impostors import loop_score_threshold
 from service.ml.sequences import (
-    TRACKING_DROPOUT,
     ConsistencySettings,
     Hypothesis,
     SequenceSettings,
@@ -52,51 +51,6 @@ from service.storage import repository as repo
 
 # Every frame of the sequence proposes candidates (see SequenceSettings); the settings' default.
 SERVICE_SEQUENCE = SequenceSettings(seed_frames=0)
-# A sequence passes only if its newest frame alone favours the aligned place by this many
-# standard deviations: a robot that has just left the mapped route still drags a matching tail
-# of frames behind it, which must not make its first frame somewhere new a loop (on the
-# development sets this keeps 94-99% of the right sequence answers, 71-86% of the wrong ones).
-NEWEST_Z_MIN = 1.0
-
-
-class TrackedLoop(NamedTuple):
-    """The robot's newest loop within :data:`TRACKING_DROPOUT` frames: the map position it
-    closed with and how many frames the robot has driven since (1: its previous frame)."""
-
-    position: int
-    frames_since: int
-
-
-def newest_loop(
-    view: SequenceMap, previous: Sequence[int], kept: dict[int, repo.Kept]
-) -> TrackedLoop | None:
-    """The loop a sequence may continue (loop tracking): the newest one closed by the robot's
-    last :data:`TRACKING_DROPOUT` frames of this sequence (``previous``, oldest first), None
-    when none closed one or the map no longer holds its frame."""
-    for since, frame_id in enumerate(reversed(previous[-TRACKING_DROPOUT:]), start=1):
-        loop_frame = kept[frame_id].loop_frame_id if frame_id in kept else None
-        if loop_frame is not None:
-            held = int(view.positions([loop_frame])[0])
-            return TrackedLoop(held, since) if held >= 0 else None
-    return None
-
-
-def sequence_shortfalls(
-    margin: float, needed: float, length: int, required: int, newest_z: float
-) -> list[str]:
-    """Why a sequence is not a loop on its own evidence, in an operator's words (empty: it
-    passed): too small a margin over its best rival, too few frames aligned, or a newest frame
-    that does not favour the place itself."""
-    out = []
-    if margin < needed:
-        out.append(f"margin {margin:.2f} is below {needed:g}")
-    if length < required:
-        out.append(f"{length} frames aligned, {required} needed")
-    if newest_z < NEWEST_Z_MIN:
-        out.append(
-            f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {NEWEST_Z_MIN:g}"
-        )
-    return out
 
 
 def _similarity(view: SequenceMap, query: np.ndarray, frame_id: int) -> float | None:

@@ -29,6 +29,12 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    the sequence's last k frames is at least t", the loops closed by a passed sequence that each
    would refuse, right and false (rightness as the report scored the answer, so any layout).
    Offline: a refused loop would also stop the tracking that follows it, which is not counted.
+6. **Why right sequence answers were not loops** (reports with ``per_query_sequence_z``): each
+   right sequence answer of a robot's row that did not close a loop, by the first condition it
+   failed: the newest frame's own evidence (``NEWEST_Z_MIN``), a margin below the tracking
+   margin, a margin below the cross-run margin where only tracking could have lowered it (no
+   loop in the last ``TRACKING_DROPOUT`` frames, or not its continuation), too few frames, or
+   none of these (the decision held it back). Frame-aligned ground truth.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -44,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from service.app.sequence_rules import NEWEST_Z_MIN
 from service.config_sections import SequenceSettings
 from service.evaluation.served_pass import PARTS
 from service.ml.sequences.distinctiveness import TRACKING_STEP
@@ -174,6 +181,34 @@ def recent_guards(details: dict[str, Any], thresholds: list[float]) -> list[Rece
     return out
 
 
+TRACKING_MARGIN = SequenceSettings.model_fields["sequence_margin_min_tracking"].default
+
+
+def unclosed_right(
+    details: dict[str, Any], tolerance: int, cross_run_margin: float, required: int
+) -> dict[str, int]:
+    """``condition -> right sequence answers held back by it first`` (part 6)."""
+    sequences = np.array(details["per_query_sequence"], float)
+    evidence = details["per_query_sequence_z"]
+    loop, _ = loop_frames(details)
+    right = np.abs(sequences[:, 0] - np.arange(len(loop))) <= tolerance
+    counts: dict[str, int] = {}
+    for i in np.flatnonzero(right & ~loop):
+        margin, length = sequences[i, 1], sequences[i, 2]
+        if evidence[i] and evidence[i][-1] < NEWEST_Z_MIN:
+            why = f"this frame's own evidence below {NEWEST_Z_MIN:g}"
+        elif margin < TRACKING_MARGIN:
+            why = f"margin below the tracking margin {TRACKING_MARGIN:g}"
+        elif margin < cross_run_margin:
+            why = f"margin below {cross_run_margin:g}, not continuing a loop"
+        elif length < required:
+            why = f"fewer than {required} frames aligned"
+        else:
+            why = "the sequence passed; the decision held it back"
+        counts[why] = counts.get(why, 0) + 1
+    return dict(sorted(counts.items(), key=lambda item: -item[1]))
+
+
 @dataclass(frozen=True)
 class WrongMargins:
     offsets: str  # how far the wrong answers' places lie from the query's frame
@@ -302,6 +337,12 @@ def main() -> None:
                         f"    last {g.frames}, mean >= {g.z_min}: {g.refused_right} right, "
                         f"{g.refused_false} false"
                     )
+            if details.get("per_query_sequence_z"):
+                held = unclosed_right(details, args.tolerance, args.cross_run_margin, args.required)
+                entry["unclosed_right"] = held
+                print(f"  right sequence answers not closed ({sum(held.values())}), first held by:")
+                for why, count in held.items():
+                    print(f"    {why}: {count}")
             print("  wrong sequence answers' margins, by how far off their place lies:")
             for w in wrong_margins(details, args.tolerance):
                 entry["wrong_margins"].append(asdict(w))

@@ -13,10 +13,11 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    place continues the previous loop's along its trajectory (``step`` frames on) is accepted
    from a lower margin. ``--dropout G`` continues the newest loop up to G frames back (a
    track lost for a frame or two, ``G x step`` frames on). Counted per half of the queries
-   (route order) with the loops it adds and how many are false. Choose on the FIRST half, read the second as held out. Offline
-   only: the newest frame's own z (the service's third sequence condition) is not in the
-   report, so the added loops are an upper bound. Needs frame-aligned ground truth (query i
-   right on references i +- ``tolerance``).
+   (route order) with the loops it adds and how many are false. Choose on the FIRST half,
+   read the second as held out. Reports from stop 43 on carry each answer's ``aligned_z``, and
+   an answer whose newest frame fails ``NEWEST_Z_MIN`` is not counted; on older reports the
+   added loops are an upper bound. Needs frame-aligned ground truth (query i right on
+   references i +- ``tolerance``).
 3. **What sets the sequence margin.** The wrong sequence answers' margins by how far their
    place lies from the right one (just outside the tolerance, a few frames off, far): the
    largest wrong margin is what ``LOOPNET_SEQUENCE_MARGIN_MIN`` must stay above. Frame-aligned
@@ -132,12 +133,15 @@ def tracking(
     continued is the newest within ``dropout`` frames back (1: the previous frame's only), and
     ``steps`` scale with how far back it lies (a frame along the route per frame driven)."""
     sequences = np.array(details["per_query_sequence"], float)
+    evidence = details.get("per_query_sequence_z") or []
     loop, frames = loop_frames(details)
     n = len(loop)
     added: list[tuple[int, int, float, bool]] = []
     for i in range(1, n):
         if loop[i] or np.isnan(sequences[i, 0]):
             continue
+        if evidence and evidence[i] and evidence[i][-1] < NEWEST_Z_MIN:
+            continue  # the newest-frame guard holds it back whatever the margin
         back = [g for g in range(1, min(dropout, i) + 1) if loop[i - g]]
         if not back:
             continue

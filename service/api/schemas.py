@@ -12,6 +12,7 @@ from service.api.closed_sets import (
     PlaceStatusValue,
 )
 from service.app.names import NAME_PATTERN
+from service.app.sequence_rules import NEWEST_Z_MIN
 from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
 
 
@@ -182,7 +183,7 @@ class SequenceOut(BaseModel):
         default_factory=list,
         description="Each frame's own evidence for its aligned reference frame, oldest first: "
         "its similarity standardised as the score's terms are (0 where none aligned). The last "
-        "is this query's; a sequence passes only where it is at least 1.",
+        f"is this query's; a sequence passes only where it is at least {NEWEST_Z_MIN:g}.",
     )
     reason: str | None = Field(
         None,

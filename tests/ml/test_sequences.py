@@ -290,7 +290,7 @@ def test_a_restarted_replica_rebuilt_from_stored_rows_answers_the_same() -> None
 
 
 def _match(reference: int, score: float) -> SequenceMatch:
-    return SequenceMatch(reference, score, 5, 1.0, (reference,), 0.5, 1.0)
+    return SequenceMatch(reference, score, 5, 1.0, (reference,), 0.5, (1.0,))
 
 
 def test_the_margin_is_over_the_best_rival_another_place() -> None:

@@ -152,10 +152,8 @@ class SequenceMatch:
         speed: relative speed of the best alignment (negative: reverse traversal).
         aligned: map frame aligned with each query frame, oldest first; -1 where none.
         similarity: plain cosine of the newest query frame and ``reference``.
-        newest_z: that similarity standardised as the score's terms are: how much the newest
-            frame alone favours ``reference``.
         aligned_z: every query frame's standardised similarity with its aligned map frame (the
-            score's terms), oldest first; 0 where none aligned. The last is ``newest_z``.
+            score's terms), oldest first; 0 where none aligned.
     """
 
     reference: int
@@ -164,8 +162,12 @@ class SequenceMatch:
     speed: float
     aligned: tuple[int, ...]
     similarity: float
-    newest_z: float
-    aligned_z: tuple[float, ...] = ()
+    aligned_z: tuple[float, ...]
+
+    @property
+    def newest_z(self) -> float:
+        """The newest frame's term: how much that frame alone favours ``reference``."""
+        return self.aligned_z[-1] if self.aligned_z else 0.0
 
 
 def propose_candidates(
@@ -311,7 +313,6 @@ def score_candidates(
                 speed=float(speeds[s]),
                 aligned=tuple(int(f) for f in aligned[c, s, ::-1]),
                 similarity=float(similarity[n - 1, newest_column[c]]),
-                newest_z=float(z_aligned[c, s, 0]),
                 aligned_z=tuple(float(z) for z in z_aligned[c, s, ::-1]),
             )
         )

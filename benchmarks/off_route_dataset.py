@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from decision_headroom import loop_frames  # the sibling script (its folder is on the path)
 
+from service.app.sequence_rules import NEWEST_Z_MIN
 from service.evaluation.dataset_layouts import VPR_BENCH_GT, read_traversals
 
 # what write_detours records beside the folder: each query's place on the drive
@@ -131,7 +132,9 @@ def drive_places(mapped: int, frames: list[int]) -> list[str]:
 
 def read(report: Path, folder: Path) -> None:
     """Where the loops of each robot row (``observe``) of ``report`` fall on the detours drive
-    in ``folder``: right and false loops off the route, just back on it, and along it."""
+    in ``folder``: right and false loops off the route, just back on it, and along it (each
+    false one with its frames' ``aligned_z``), and how much the newest frame's own evidence
+    favours the sequence's place off the route and on it."""
     route = json.loads((folder / ROUTE_FILE).read_text())
     places = drive_places(route["mapped"], route["frames"])
     truth = np.load(folder / VPR_BENCH_GT, allow_pickle=True)
@@ -144,6 +147,7 @@ def read(report: Path, folder: Path) -> None:
         if np.isnan(sequences[:, 0]).all():
             continue  # anonymous queries: no drive
         loop, frames = loop_frames(details)
+        evidence = details.get("per_query_sequence_z") or [[] for _ in loop]
         counts: dict[str, list[int]] = {}
         false: list[str] = []
         for i in np.flatnonzero(loop):
@@ -152,13 +156,24 @@ def read(report: Path, folder: Path) -> None:
             if wrong:
                 false.append(
                     f"query {i} ({places[i]}) -> reference {frames[i]}, sequence margin "
-                    f"{sequences[i, 1]:.2f}, passed {bool(sequences[i, 3] == 1)}"
+                    f"{sequences[i, 1]:.2f}, passed {bool(sequences[i, 3] == 1)}, "
+                    f"aligned_z {[round(z, 1) for z in evidence[i]]}"
                 )
         print(f"{row['name']}: {int(loop.sum())} loops of {len(loop)} queries")
         for group, (n_right, n_false) in sorted(counts.items()):
             print(f"  {group}: {n_right} right, {n_false} false")
         for line in false:
             print(f"  false: {line}")
+        newest = np.array([z[-1] if z else np.nan for z in evidence])
+        off = np.array([place.startswith("off") for place in places])
+        for name, where in (("off the map", off), ("on the route", ~off)):
+            values = newest[where & ~np.isnan(newest)]
+            if len(values):
+                print(
+                    f"  newest frame's aligned_z {name}: median {np.median(values):.2f}, "
+                    f"10 % below {np.quantile(values, 0.1):.2f}, "
+                    f"{np.mean(values >= NEWEST_Z_MIN):.0%} at least {NEWEST_Z_MIN:g}"
+                )
 
 
 def main() -> None:

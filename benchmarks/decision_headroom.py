@@ -51,10 +51,9 @@ from typing import Any
 
 import numpy as np
 
-from service.app.sequence_rules import NEWEST_Z_MIN
 from service.config_sections import SequenceSettings
 from service.evaluation.served_pass import PARTS
-from service.ml.sequences.distinctiveness import TRACKING_STEP
+from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_STEP
 
 
 @dataclass(frozen=True)

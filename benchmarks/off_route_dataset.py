@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 from decision_headroom import loop_frames  # the sibling script (its folder is on the path)
 
-from service.app.sequence_rules import NEWEST_Z_MIN
 from service.evaluation.dataset_layouts import VPR_BENCH_GT, read_traversals
+from service.ml.sequences.distinctiveness import NEWEST_Z_MIN
 
 # what write_detours records beside the folder: each query's place on the drive
 ROUTE_FILE = "route.json"

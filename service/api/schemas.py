@@ -12,8 +12,7 @@ from service.api.closed_sets import (
     PlaceStatusValue,
 )
 from service.app.names import NAME_PATTERN
-from service.app.sequence_rules import NEWEST_Z_MIN
-from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
+from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT
 
 
 class ErrorOut(BaseModel):

@@ -1,7 +1,8 @@
 """When a robot's sequence is a loop on its own evidence, and which loop it may continue.
 
 The rules :class:`~service.app.sequences.SequenceScorer` applies to its best place: the newest
-frame must favour that place itself (:data:`NEWEST_Z_MIN`), and a place that continues the
+frame must favour that place itself
+(:data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`), and a place that continues the
 robot's newest loop of its last few frames needs only the tracking margin
 (:func:`newest_loop`, :func:`service.ml.sequences.margin_needed`). What fails is said in an
 operator's words (:func:`sequence_shortfalls`).
@@ -13,14 +14,8 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 from service.app.sequence_map import SequenceMap
-from service.ml.sequences import TRACKING_DROPOUT
+from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT
 from service.storage import repository as repo
-
-# A sequence passes only if its newest frame alone favours the aligned place by this many
-# standard deviations: a robot that has just left the mapped route still drags a matching tail
-# of frames behind it, which must not make its first frame somewhere new a loop (on the
-# development sets this keeps 94-99% of the right sequence answers, 71-86% of the wrong ones).
-NEWEST_Z_MIN = 1.0
 
 
 class TrackedLoop(NamedTuple):

@@ -374,7 +374,7 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
     align along the mapper's trajectory, so the sequence names place 25 with a margin above
     the one it needs (the tracking margin: 25 continues the loop at 24); only the newest
     frame's own evidence for 25 is missing, and that alone keeps the answer from a loop
-    (service.app.sequence_rules.NEWEST_Z_MIN)."""
+    (service.ml.sequences.distinctiveness.NEWEST_Z_MIN)."""
     with make_client(
         data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
     ) as client:

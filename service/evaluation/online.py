@@ -207,7 +207,8 @@ class OnlineConfig:
             extractor and L: the service's defaults, calibration at the milestones during the
             replay; :mod:`service.evaluation.online_served`).
         served_adapt_after: for each N, the same served rows again with automatic adaptation
-            after every N revisit pairs (``loopnet-<extractor>-served-adaptN``).
+            after every N revisit pairs instead of the service's default (0: off;
+            ``loopnet-<extractor>-served-adaptN``).
     """
 
     trajectory: Trajectory
@@ -293,7 +294,7 @@ def _served_row(
     extractor: str,
     pipeline: FeaturePipeline,
     length: int,
-    adapt_after_pairs: int = 0,
+    adapt_after_pairs: int | None = None,
 ) -> dict[str, Any]:
     """The ``loopnet-<extractor>-served`` row at L: the replay as served, swept by
     :func:`replay` (k=1, and with the protocol's consistency) over the decision's logit among
@@ -314,7 +315,7 @@ def _served_row(
         adapt_after_pairs=adapt_after_pairs,
     )
     vectors = unit_embeddings(features, pipeline.preset.alpha)
-    adapting = f"-adapt{adapt_after_pairs}" if adapt_after_pairs else ""
+    adapting = f"-adapt{adapt_after_pairs}" if adapt_after_pairs is not None else ""
     row: dict[str, Any] = {"method": f"loopnet-{extractor}-served{adapting}"}
     for score in SWEEPS:
         observations = [Observation(*a) for a in served_observations(served, score)]

@@ -99,11 +99,11 @@ def served_replay(
     length: int,
     exclude_recent: int,
     consistency: int,
-    adapt_after_pairs: int = 0,
+    adapt_after_pairs: int | None = None,
 ) -> ServedReplay:
     """Observe every frame as the service at its defaults answers it (fusion at the preset's
     alpha), running each job a frame queues before the next frame; ``adapt_after_pairs``
-    turns automatic adaptation on (0: off, the service's default)."""
+    sets automatic adaptation's number of pairs (0: off; None: the service's default)."""
     count = len(features.local)
     times = frame_times(trajectory, count)
     dim = pipeline.local.descriptor_dim

@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,22 +51,24 @@ def replay_settings(
     exclude_recent: int,
     consistency: int,
     served: bool,
-    adapt_after_pairs: int = 0,
+    adapt_after_pairs: int | None = None,
 ) -> Settings:
     """The replay atlas's settings: the protocol's exclusion (the robot's last frames, not
     seconds) and consistency. ``served``: everything else at the service's defaults
-    (verification, the loop decision, calibration milestones); otherwise retrieval only (no
-    verification, no automatic calibration). ``adapt_after_pairs``: automatic adaptation
-    (``LOOPNET_ADAPT_AFTER_PAIRS``; 0, the default, off)."""
-    retrieval_only = {} if served else {"verify_top": 0, "calibration_milestones": ""}
+    (verification, the loop decision, calibration milestones, automatic adaptation);
+    otherwise retrieval only (no verification, no automatic calibration or adaptation).
+    ``adapt_after_pairs``: automatic adaptation after that many revisit pairs
+    (``LOOPNET_ADAPT_AFTER_PAIRS``; 0: off; None: as ``served`` says)."""
+    overrides: dict[str, Any] = {} if served else {"verify_top": 0, "calibration_milestones": ""}
+    if adapt_after_pairs is not None or not served:
+        overrides["adapt_after_pairs"] = adapt_after_pairs or 0
     return Settings(
         data_dir=data_dir,
         exclude_recent_frames=exclude_recent,
         exclude_recent_seconds=0.0,
         consistency_frames=consistency,
-        adapt_after_pairs=adapt_after_pairs,
         torch_threads=torch.get_num_threads(),  # the caller's own, kept
-        **retrieval_only,  # type: ignore[arg-type]
+        **overrides,
     )
 
 
@@ -78,7 +81,7 @@ def replay_atlas(
     exclude_recent: int,
     consistency: int,
     served: bool,
-    adapt_after_pairs: int = 0,
+    adapt_after_pairs: int | None = None,
 ) -> Iterator[AtlasService]:
     """A started service on a temporary SQLite atlas (``ATLAS``, one submap) whose untrained
     heads fuse at ``alpha``; stopped and deleted on exit."""

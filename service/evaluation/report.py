@@ -52,7 +52,24 @@ def methods_table(methods: Sequence[MethodResult], tolerance: str) -> str:
             "(decision.closable: a verified match, no less rare than the atlas's impostors); "
             "over the probability alone, every answer swept, R@100%P is: " + "; ".join(alone) + "."
         )
+    lines.extend(served_jobs_lines(methods))
     return "\n".join(lines)
+
+
+def served_jobs_lines(methods: Sequence[MethodResult]) -> list[str]:
+    """One line per served row whose observations queued jobs (automatic adaptation): each
+    job, the query after which it ran, and what became of its version."""
+    lines = []
+    for m in methods:
+        ran = m.details.get("jobs") or []
+        if ran:
+            jobs = "; ".join(
+                f"{j['kind']} after query {j['after_query']}: {j['status']}"
+                + (f", {j['message']}" if j["message"] else "")
+                for j in ran
+            )
+            lines.append(f"{m.label}: jobs its observations queued, each run at once: {jobs}.")
+    return lines
 
 
 def retraining_table(rows: Sequence[dict[str, Any]]) -> str:

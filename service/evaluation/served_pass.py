@@ -79,6 +79,8 @@ class ServedAnswers:
     sequences: list[list[float]] = field(default_factory=list)
     # per query, the sequence's aligned_z (each frame's own evidence, oldest first; []: none)
     sequence_z: list[list[float]] = field(default_factory=list)
+    # the jobs the observations queued, each run before the next query (see served_answers)
+    jobs: list[dict[str, Any]] = field(default_factory=list)
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -128,6 +130,7 @@ def served_answers(
     extractor: str,
     sequence_length: int = 0,
     query_filter: QueryFilter | None = None,
+    adapt_after_pairs: int = 0,
 ) -> ServedAnswers:
     """Ask every query through the service with the default verification switched on.
 
@@ -135,7 +138,10 @@ def served_answers(
     ``query_filter`` allows (None: all). Otherwise the queries are one robot's observations
     (``POST /observe``, one second apart, asking about the other robots' frames only, so the
     references): each is answered with its sequence of that length and consistency, then joins
-    the atlas; call it last, after every anonymous pass.
+    the atlas; call it last, after every anonymous pass. ``adapt_after_pairs`` (observations
+    only; 0: off) queues an adaptation job after that many revisit pairs the observations
+    kept, as the service does, and runs it before the next observation, as a worker would
+    between two frames: the row then measures the atlas the service would be serving.
     """
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
@@ -144,7 +150,9 @@ def served_answers(
     candidates: list[list[list[float]]] = []
     sequences: list[list[float]] = []
     sequence_z: list[list[float]] = []
-    with served_settings(service, extractor) as settings:
+    ran: list[dict[str, Any]] = []
+    adapting = adapt_after_pairs if sequence_length else 0
+    with served_settings(service, extractor) as settings, queued_jobs(service, adapting) as queued:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
             features = replace(features, local=as_stored(features.local))
@@ -178,6 +186,8 @@ def served_answers(
             candidates.append(candidate_rows(answer, frame_to_reference))
             sequences.append(sequence_row(answer, frame_to_reference))
             sequence_z.append(list(answer.sequence.aligned_z) if answer.sequence else [])
+            while queued:
+                ran.append(job_summary(run_job_now(service, queued.pop(0)), query=i))
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -196,7 +206,38 @@ def served_answers(
         closable,
         sequences,
         sequence_z,
+        ran,
     )
+
+
+@contextmanager
+def queued_jobs(service: AtlasService, adapt_after_pairs: int) -> Iterator[list[int]]:
+    """While the block runs: automatic adaptation after ``adapt_after_pairs`` revisit pairs
+    (0: off; the harness's atlas keeps it off elsewhere, its protocols adapt explicitly), and
+    the ids of the jobs the service queues collected in the list yielded, for the caller to
+    run, instead of going to the process's queue."""
+    queued: list[int] = []
+    before = (service.settings, service.frames.enqueue)
+    service.settings = service.settings.model_copy(update={"adapt_after_pairs": adapt_after_pairs})
+    service.frames.enqueue = queued.append
+    try:
+        yield queued
+    finally:
+        service.settings, service.frames.enqueue = before
+
+
+def job_summary(job: Job, query: int) -> dict[str, Any]:
+    """A job a query's observation queued, as the report lists it: its kind, the query after
+    which it ran, its status, the version it published and its one line to the operator."""
+    return {
+        "job": job.id,
+        "kind": job.kind,
+        "after_query": query,
+        "status": job.status,
+        "model_version": job.model_version,
+        "message": job.message or "",
+        "error": job.error,
+    }
 
 
 def fitted_min_inliers(service: AtlasService, atlas: str) -> dict[str, Any] | None:
@@ -293,6 +334,7 @@ def served_method(
         "per_query_candidates": served.candidates,
         "per_query_sequence": served.sequences,
         "per_query_sequence_z": served.sequence_z,
+        "jobs": served.jobs,
         "per_query_closable": [int(c) for c in served.closable],
         "per_query_right": right.astype(int).tolist(),
     }

@@ -158,7 +158,9 @@ def run_service_pass(
     parameters), the atlas is then calibrated by the job and every query asked again. With
     ``serve``, every query is then asked once more as the service serves it (verification and
     the loop decision at the defaults: :mod:`service.evaluation.served_pass`), and with
-    ``serve_sequence`` L once more as one robot's observations with sequences of length L.
+    ``serve_sequence`` L once more as one robot's observations with sequences of length L,
+    with the adaptation the service's defaults queue after their revisit pairs run between
+    observations (``LOOPNET_ADAPT_AFTER_PAIRS``; the atlas keeps it off until then).
     ``in_atlas`` runs on the atlas after the served pass, before the sequences' observations
     (it must leave the atlas as it found it).
     """
@@ -191,6 +193,7 @@ def run_service_pass(
             max_k=max(k, 1),
             verify_top=0,
             calibration_milestones="",
+            adapt_after_pairs=0,  # the protocols adapt explicitly; the observations as served
             torch_threads=torch.get_num_threads(),  # the harness's own (--threads), kept
         )
         runtime = Runtime(settings, pipeline)
@@ -268,6 +271,7 @@ def run_service_pass(
                 ATLAS,
                 pipeline.preset.local.name,
                 sequence_length=serve_sequence,
+                adapt_after_pairs=Settings(data_dir=Path(data_dir)).adapt_after_pairs,
             )
             if serve and serve_sequence and query_features
             else None

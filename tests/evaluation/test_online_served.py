@@ -8,6 +8,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from service.evaluation.datasets import load_dataset
 from service.evaluation.feature_cache import cache_path
@@ -15,10 +16,28 @@ from service.evaluation.loop_ground_truth import trajectory_from_traversals
 from service.evaluation.online import OnlineConfig, run_online
 from service.evaluation.online_features import trajectory_cache
 from service.evaluation.online_served import SERVED_SWEEP
+from service.evaluation.online_service import replay_settings
 from service.evaluation.served_pass import PARTS
 from service.ml.pipeline import FeaturePipeline
 from service.ml.presets import resolve_preset
 from tests.conftest import DATA_DIR, TEST_LONG_SIDE
+
+
+def test_the_served_replay_adapts_as_the_services_default_says(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The served row's atlas adapts after the service's LOOPNET_ADAPT_AFTER_PAIRS (what a
+    deployment runs), a ``-adaptN`` row after N (0: off); the retrieval rows never adapt."""
+    monkeypatch.setenv("LOOPNET_ADAPT_AFTER_PAIRS", "700")
+
+    def adapting(served: bool, pairs: int | None = None) -> int:
+        return replay_settings(
+            tmp_path, exclude_recent=20, consistency=3, served=served, adapt_after_pairs=pairs
+        ).adapt_after_pairs
+
+    assert adapting(served=True) == 700
+    assert (adapting(True, 500), adapting(True, 0)) == (500, 0)
+    assert adapting(served=False) == 0
 
 
 def test_a_traversals_trajectory_reads_loopnet_evals_cache_file(tmp_path) -> None:  # type: ignore[no-untyped-def]

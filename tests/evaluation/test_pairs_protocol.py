@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from service.app.catalog import AtlasService
-from service.evaluation.datasets import load_dataset
+from service.evaluation.datasets import Dataset, load_dataset
 from service.evaluation.pairs_pass import (
     ObservedPairs,
     observed_pairs_rows,
@@ -23,7 +23,7 @@ from service.evaluation.protocol import assign_submaps
 from service.evaluation.report import observed_pairs_table
 from service.evaluation.runner import EvalConfig, run_evaluation
 from service.evaluation.served_pass import PARTS, ServedAnswers
-from service.evaluation.service_pass import ATLAS, run_service_pass
+from service.evaluation.service_pass import ATLAS, PassResult, run_service_pass
 from service.ml.features import FrameFeatures
 from service.storage import repository as repo
 from service.storage.models import Frame, RevisitPair, Submap
@@ -44,8 +44,31 @@ def _atlas_state(service: AtlasService) -> dict[str, Any]:
         }
 
 
+def _served_pass(  # type: ignore[no-untyped-def]
+    pipeline, cache_dir: Path, dataset: Dataset, submap_of: list[int], **options: Any
+) -> PassResult:
+    """The harness's service pass over the slice, calibrated and served (k = 10)."""
+    return run_service_pass(
+        dataset,
+        submap_of,
+        pipeline,
+        k=10,
+        cache_dir=cache_dir,
+        label="disk",
+        calibration={},
+        serve=True,
+        **options,
+    )
+
+
 @pytest.fixture(scope="module")
-def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+def feature_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One feature cache for the module's passes: the slice is extracted once."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def protocol_run(pipeline, feature_cache: Path):  # type: ignore[no-untyped-def]
     dataset = load_dataset(COHOG, tolerance=2).head(PLACES)
     submap_of, _ = assign_submaps(dataset, 5)
     states: dict[str, Any] = {}
@@ -79,17 +102,7 @@ def protocol_run(pipeline, tmp_path_factory: pytest.TempPathFactory):  # type: i
         states["served"] = served
         return list(runs)
 
-    result = run_service_pass(
-        dataset,
-        submap_of,
-        pipeline,
-        k=10,
-        cache_dir=tmp_path_factory.mktemp("cache"),
-        label="disk",
-        calibration={},
-        serve=True,
-        in_atlas=probe,
-    )
+    result = _served_pass(pipeline, feature_cache, dataset, submap_of, in_atlas=probe)
     return dataset, submap_of, result, states
 
 
@@ -168,6 +181,28 @@ def test_a_drive_gives_the_job_the_closures_observe_kept(protocol_run) -> None: 
         assert "a drive over the first 50 % of the queries" in methods[1].label
         assert names[-1] == "pairs-stream-k50-drive-after"
     assert states["after"] == states["before"]  # the drive's frames and pairs are gone
+
+
+@pytest.mark.slow
+def test_the_served_drive_adapts_as_the_service_would(  # type: ignore[no-untyped-def]
+    pipeline, feature_cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the served row's robot drives the queries at the service's defaults: once its
+    # observations have kept LOOPNET_ADAPT_AFTER_PAIRS revisit pairs, the service queues an
+    # adaptation job and a worker runs it before the next frame; the row measures that atlas
+    monkeypatch.setenv("LOOPNET_ADAPT_AFTER_PAIRS", "10")
+    dataset = load_dataset(COHOG, tolerance=2).head(PLACES)
+    submap_of, _ = assign_submaps(dataset, 5)
+    result = _served_pass(pipeline, feature_cache, dataset, submap_of, serve_sequence=10)
+    drive = result.served_sequence
+    assert drive is not None and len(drive.status) == len(dataset.queries)
+    assert drive.jobs, "the drive kept 10 pairs: the service queued an adaptation"
+    first = drive.jobs[0]
+    assert first["kind"] == "adapt" and first["status"] == "succeeded", first
+    assert 0 < first["after_query"] < len(dataset.queries) - 1
+    assert first["message"].startswith(f"model version {first['model_version']} ")
+    # the anonymous served row asked before the drive: the atlas's own setting is off
+    assert result.served is not None and not result.served.jobs
 
 
 def test_a_drive_needs_some_queries_left_to_test() -> None:

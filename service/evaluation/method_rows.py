@@ -128,10 +128,12 @@ def served_rows(
         )
     if result.served_sequence is not None:
         length = result.served_sequence.sequence_length
+        every = result.served_sequence.adapt_after_pairs
+        adapting = f", adapting every {every} pairs" if every else ""
         rows.append(
             served_method(
                 f"loopnet-{extractor}-served+seq{length}",
-                f"{label} (as served, observe, L={length})",
+                f"{label} (as served, observe, L={length}{adapting})",
                 result.served_sequence,
                 dataset,
                 submap_of,

@@ -79,8 +79,10 @@ class ServedAnswers:
     sequences: list[list[float]] = field(default_factory=list)
     # per query, the sequence's aligned_z (each frame's own evidence, oldest first; []: none)
     sequence_z: list[list[float]] = field(default_factory=list)
-    # the jobs the observations queued, each run before the next query (see served_answers)
+    # the jobs the observations queued, each run before the next query (see served_answers),
+    # and the revisit pairs after which they queued an adaptation (0: never)
     jobs: list[dict[str, Any]] = field(default_factory=list)
+    adapt_after_pairs: int = 0
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
         """The answers of the queries ``keep`` (indices), in that order."""
@@ -207,6 +209,7 @@ def served_answers(
         sequences,
         sequence_z,
         ran,
+        adapting,
     )
 
 

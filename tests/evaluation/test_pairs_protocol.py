@@ -196,6 +196,7 @@ def test_the_served_drive_adapts_as_the_service_would(  # type: ignore[no-untype
     result = _served_pass(pipeline, feature_cache, dataset, submap_of, serve_sequence=10)
     drive = result.served_sequence
     assert drive is not None and len(drive.status) == len(dataset.queries)
+    assert drive.adapt_after_pairs == 10  # the row's label says so
     assert drive.jobs, "the drive kept 10 pairs: the service queued an adaptation"
     first = drive.jobs[0]
     assert first["kind"] == "adapt" and first["status"] == "succeeded", first

@@ -2,10 +2,11 @@
 
 The rules :class:`~service.app.sequences.SequenceScorer` applies to its best place: the newest
 frame must favour that place itself
-(:data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`), and a place that continues the
-robot's newest loop of its last few frames needs only the tracking margin
-(:func:`newest_loop`, :func:`service.ml.sequences.margin_needed`). What fails is said in an
-operator's words (:func:`sequence_shortfalls`).
+(:data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`), the place may not run ahead of
+the robot's loops of its last few frames faster than the sequence's speeds carry a robot
+(:func:`ran_ahead`), and a place that continues the robot's newest loop needs only the tracking
+margin (:func:`recent_loops`, :func:`service.ml.sequences.margin_needed`). What fails is said
+in an operator's words (:func:`sequence_shortfalls`).
 """
 
 from __future__ import annotations
@@ -13,39 +14,82 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numpy as np
+
 from service.app.sequence_map import SequenceMap
-from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT
+from service.ml.sequences import SequenceSettings, Trajectories, runs_ahead
+from service.ml.sequences.distinctiveness import (
+    NEWEST_Z_MIN,
+    RUN_AHEAD_SLACK,
+    TRACKING_DROPOUT,
+)
 from service.storage import repository as repo
 
 
 class TrackedLoop(NamedTuple):
-    """The robot's newest loop within :data:`TRACKING_DROPOUT` frames: the map position it
+    """A loop of one of the robot's last :data:`TRACKING_DROPOUT` frames: the map position it
     closed with and how many frames the robot has driven since (1: its previous frame)."""
 
     position: int
     frames_since: int
 
 
-def newest_loop(
+def recent_loops(
     view: SequenceMap, previous: Sequence[int], kept: dict[int, repo.Kept]
-) -> TrackedLoop | None:
-    """The loop a sequence may continue (loop tracking): the newest one closed by the robot's
-    last :data:`TRACKING_DROPOUT` frames of this sequence (``previous``, oldest first), None
-    when none closed one or the map no longer holds its frame."""
+) -> list[TrackedLoop]:
+    """The loops closed by the robot's last :data:`TRACKING_DROPOUT` frames of this sequence
+    (``previous``, oldest first), newest first, up to the first whose frame the map no longer
+    holds. The first is the loop a sequence may continue (loop tracking)."""
+    loops = []
     for since, frame_id in enumerate(reversed(previous[-TRACKING_DROPOUT:]), start=1):
         loop_frame = kept[frame_id].loop_frame_id if frame_id in kept else None
         if loop_frame is not None:
             held = int(view.positions([loop_frame])[0])
-            return TrackedLoop(held, since) if held >= 0 else None
+            if held < 0:
+                break
+            loops.append(TrackedLoop(held, since))
+    return loops
+
+
+class RanAhead(NamedTuple):
+    """A place further past one of the robot's recent loops than its speeds carry it."""
+
+    frames: int  # map frames past the loop
+    loop: TrackedLoop
+    allowed: float  # the most the fastest speed carries the robot since, with the slack
+
+
+def ran_ahead(
+    trajectories: Trajectories,
+    reference: int,
+    loops: Sequence[TrackedLoop],
+    settings: SequenceSettings,
+) -> RanAhead | None:
+    """The first of the robot's recent ``loops`` that map frame ``reference`` runs ahead of
+    faster than the sequence's fastest speed (:func:`service.ml.sequences.runs_ahead`), None
+    when it keeps pace with all of them."""
+    speeds = settings.signed_speeds
+    fastest, both_ways = float(np.max(np.abs(speeds))), bool(np.any(speeds < 0))
+    for loop in loops:
+        ahead = runs_ahead(
+            trajectories, reference, loop.position, loop.frames_since, fastest, both_ways
+        )
+        if ahead is not None:
+            return RanAhead(ahead, loop, fastest * loop.frames_since + RUN_AHEAD_SLACK)
     return None
 
 
 def sequence_shortfalls(
-    margin: float, needed: float, length: int, required: int, newest_z: float
+    margin: float,
+    needed: float,
+    length: int,
+    required: int,
+    newest_z: float,
+    outran: RanAhead | None = None,
 ) -> list[str]:
     """Why a sequence is not a loop on its own evidence, in an operator's words (empty: it
-    passed): too small a margin over its best rival, too few frames aligned, or a newest frame
-    that does not favour the place itself."""
+    passed): too small a margin over its best rival, too few frames aligned, a newest frame
+    that does not favour the place itself, or a place running ahead of the robot's loops."""
     out = []
     if margin < needed:
         out.append(f"margin {margin:.2f} is below {needed:g}")
@@ -54,5 +98,12 @@ def sequence_shortfalls(
     if newest_z < NEWEST_Z_MIN:
         out.append(
             f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {NEWEST_Z_MIN:g}"
+        )
+    if outran is not None:
+        since = outran.loop.frames_since
+        out.append(
+            f"its place lies {outran.frames} map frames past the loop closed {since} "
+            f"frame{'s' if since > 1 else ''} ago, more than the {outran.allowed:g} "
+            "the sequence's speeds allow"
         )
     return out

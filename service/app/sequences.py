@@ -31,7 +31,7 @@ from service.app.filters import Selection
 from service.app.results import SequenceAnswer
 from service.app.robot_evidence import Earlier, RobotContext, RobotEvidence
 from service.app.sequence_map import SequenceMap, SequenceMaps
-from service.app.sequence_rules import TrackedLoop, newest_loop, sequence_shortfalls
+from service.app.sequence_rules import TrackedLoop, ran_ahead, recent_loops, sequence_shortfalls
 from service.app.state import LoadedAtlas
 from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.config import Settings
@@ -157,7 +157,7 @@ class SequenceScorer:
                     eligible,
                     selection,
                     robot.sequence_length,
-                    newest_loop(view, previous, kept),
+                    recent_loops(view, previous, kept),
                 )
             past = self._previous(state, view, earlier, eligible, selection)
             return RobotEvidence(
@@ -204,10 +204,11 @@ class SequenceScorer:
         eligible: np.ndarray,
         selection: Selection,
         length: int,
-        tracked: TrackedLoop | None,
+        loops: list[TrackedLoop],
     ) -> SequenceAnswer | None:
         """The best place for the sequence and its margin over the best rival (the margin it
-        needs is lower where it continues the ``tracked`` loop). Candidates come from the
+        needs is lower where it continues the newest of the robot's recent ``loops``; it may
+        not run ahead of any of them). Candidates come from the
         newest frame's hits and from the ``sequence_seed_frames`` - 1 earlier frames (0: all):
         their kept proposals, or a search where none were kept."""
         settings = replace(
@@ -250,6 +251,7 @@ class SequenceScorer:
         if distinct is None:
             return None
         best = matches[0]
+        tracked = loops[0] if loops else None
         needed = margin_needed(
             view.trajectories,
             best.reference,
@@ -266,6 +268,7 @@ class SequenceScorer:
             best.length,
             self.consistency.required,
             best.newest_z,
+            ran_ahead(view.trajectories, best.reference, loops, settings),
         )
         return SequenceAnswer(
             score=round(float(best.score), 6),

@@ -421,6 +421,36 @@ def test_a_track_lost_for_a_frame_or_two_is_picked_up_again(
     assert dropped < TRACKING_DROPOUT and sequence.margin_min == 2.5
 
 
+def test_a_place_running_ahead_of_the_robots_loops_is_not_its_sequences_loop(
+    data_dir: Path, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys closes its loop at place 24; one second later the rover's frames
+    show places 30, 31, 32, 33: further along the route than any speed of the sequence model
+    (at most 1.25 map frames a frame, and one of rounding) carries it from that loop. Its
+    sequence names those places but does not pass while the loop is one of its last
+    TRACKING_DROPOUT frames', and says why; the next frame's sequence passes."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
+        jumped = [
+            observe(client, features(G[place]), 105.0 + k, sequence_length=5)
+            for k, place in enumerate([30, 31, 32, 33])
+        ]
+    sequences = [answer.sequence for answer in jumped]
+    assert all(s is not None for s in sequences)
+    named = [(ids.index(s.frame_id), s.passed) for s in sequences if s is not None]
+    assert named[1:] == [(31, False), (32, False), (33, True)]
+    reason = sequences[2].reason if sequences[2] is not None else None
+    # its margin alone would pass: what fails is the pace
+    assert reason == (
+        "its place lies 8 map frames past the loop closed 3 frames ago, more than the 4.75 "
+        "the sequence's speeds allow"
+    )
+    assert TRACKING_DROPOUT == 3
+
+
 @pytest.mark.parametrize("tracking", [1.0, None])
 def test_a_loop_the_robot_just_closed_is_continued_from_the_tracking_margin(
     data_dir: Path, pipeline, tracking: float | None

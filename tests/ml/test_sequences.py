@@ -22,6 +22,7 @@ from service.ml.sequences import (
     distinctiveness,
     margin_needed,
     match_sequence,
+    runs_ahead,
     score_candidates,
     sequence_starts,
 )
@@ -361,6 +362,21 @@ def test_a_place_continues_the_last_loop_only_just_ahead_on_its_trajectory() -> 
     assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=None, **margins) == 4.0
     # a tracking margin above the one that applies changes nothing
     assert margin_needed(two_routes, 11, None, previous_loop=10, tracking=9.0, **margins) == 4.0
+
+
+def test_a_place_may_not_run_ahead_of_a_recent_loop_faster_than_the_fastest_speed() -> None:
+    """A robot at speed 1.25 passes at most 1.25 map frames a frame, and an alignment rounds by
+    one: 2 frames ahead of the previous frame's loop is its pace, 3 is not; 3 in two frames is,
+    4 is not. Lagging behind (a robot slowing or standing) is allowed; a place on another
+    trajectory is not compared; reverse speeds count running ahead backwards too."""
+    route = Trajectories.single(40)
+    ahead = [runs_ahead(route, 10 + k, 10, 1, 1.25) for k in range(-2, 5)]
+    assert ahead == [None, None, None, None, None, 3, 4]
+    assert runs_ahead(route, 13, 10, 2, 1.25) is None and runs_ahead(route, 14, 10, 2, 1.25) == 4
+    assert runs_ahead(route, 2, 10, 1, 1.25) is None  # far behind: not running ahead
+    assert runs_ahead(route, 2, 10, 1, 1.25, both_ways=True) == 8
+    two_routes = Trajectories.single(40, starts=np.arange(40) == 20)
+    assert runs_ahead(two_routes, 25, 10, 1, 1.25) is None  # another trajectory
 
 
 def test_a_track_lost_for_a_frame_or_two_is_picked_up_where_the_robot_has_driven_since() -> None:

@@ -17,6 +17,7 @@ from service.ml.sequences.distinctiveness import (
     continues_loop,
     distinctiveness,
     margin_needed,
+    runs_ahead,
 )
 from service.ml.sequences.scoring import (
     MapMoments,
@@ -48,6 +49,7 @@ __all__ = [
     "margin_needed",
     "match_sequence",
     "propose_candidates",
+    "runs_ahead",
     "score_candidates",
     "sequence_starts",
 ]

@@ -79,6 +79,14 @@ NEWEST_Z_MIN = 1.0
 # a false loop four frames into an unmapped detour (margin 3.19): a robot that has left the map
 # must not be carried along it for long (benchmarks/RESULTS.md, issue 25, stop 43).
 TRACKING_DROPOUT = 3
+# How much further than its speeds carry it a robot's loop may run ahead of the loops its last
+# TRACKING_DROPOUT frames closed: one map frame (the rounding of an alignment). A sequence pinned
+# by a few distinctive frames can slide along a bland stretch at its fastest speed, so that
+# consecutive loops run two map frames a frame: on Nordland with automatic adaptation (L = 10)
+# two such loops landed two frames past the robot (false at +-1); no right loop there ran
+# ahead this fast, and two on cohog200 did, right only within its +-2 (benchmarks/RESULTS.md,
+# issue 25, stop 44).
+RUN_AHEAD_SLACK = 1
 
 
 def continues_loop(
@@ -91,6 +99,26 @@ def continues_loop(
         return False
     ahead = trajectories.step(np.array(previous_loop), np.array(TRACKING_STEP * frames_since))
     return int(ahead) == reference
+
+
+def runs_ahead(
+    trajectories: Trajectories,
+    reference: int,
+    loop: int,
+    frames_since: int,
+    fastest: float,
+    both_ways: bool = False,
+) -> int | None:
+    """How many map frames ``reference`` lies past the loop the robot closed ``frames_since``
+    frames ago at map frame ``loop``, when that is more than ``fastest`` map frames a frame
+    carry it (plus :data:`RUN_AHEAD_SLACK`); None when it is not, or lies on another
+    trajectory. Lagging behind is allowed (a robot may slow down or stop); ``both_ways``: a
+    robot may drive the map backwards (reverse speeds), so running ahead either way counts."""
+    if trajectories.sequence[reference] != trajectories.sequence[loop]:
+        return None
+    ahead = int(trajectories.rank[reference]) - int(trajectories.rank[loop])
+    ahead = abs(ahead) if both_ways else ahead
+    return ahead if ahead > fastest * frames_since + RUN_AHEAD_SLACK else None
 
 
 def margin_needed(

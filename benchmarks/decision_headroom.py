@@ -36,6 +36,13 @@ what bounds each served row's R@100%P, and what *loop tracking* would add to a r
    margin, a margin below the cross-run margin where only tracking could have lowered it (no
    loop in the last ``TRACKING_DROPOUT`` frames, or not its continuation), too few frames, or
    none of these (the decision held it back). Frame-aligned ground truth.
+7. **Places running ahead of the robot** (``--run-ahead``): the loops closed by a passed
+   sequence whose place lies further past a loop of the previous ``TRACKING_DROPOUT`` queries
+   than the fastest speed carries a robot, plus ``RUN_AHEAD_SLACK`` (the service's rule since
+   stop 44; run it on reports made before it), right and false as the report scored them.
+   References in route order (one trajectory). With ``--recent-z``, part 5 also gives guards
+   relative to the sequence's own level: the last k frames' mean ``aligned_z`` as a share of
+   the median of the frames before them, and the last k frames all below t.
 
 Nothing here is a service path: it is the record of what a change could buy before building it.
 """
@@ -53,7 +60,9 @@ import numpy as np
 
 from service.config_sections import SequenceSettings
 from service.evaluation.served_pass import PARTS
-from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_STEP
+from service.ml.sequences import SequenceSettings as SequenceModel
+from service.ml.sequences import Trajectories, runs_ahead
+from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT, TRACKING_STEP
 
 
 @dataclass(frozen=True)
@@ -184,6 +193,49 @@ def recent_guards(details: dict[str, Any], thresholds: list[float]) -> list[Rece
     return out
 
 
+def relative_guards(details: dict[str, Any], shares: list[float], levels: list[float]) -> list[str]:
+    """Part 5's guards against the sequence's own level: per k, the loops a passed sequence
+    closed that "last k frames' mean aligned_z below a share of the median before them" and
+    "last k frames all below t" would refuse, as lines (right, false)."""
+    sequences = np.array(details["per_query_sequence"], float)
+    evidence = details["per_query_sequence_z"]
+    loop, _ = loop_frames(details)
+    right = np.array(details["per_query_right"], bool)
+    by_sequence = [i for i in np.flatnonzero(loop & (sequences[:, 3] == 1)) if len(evidence[i]) > 3]
+    lines = []
+    for k in (1, 2, 3):
+        z = [np.asarray(evidence[i], float) for i in by_sequence]
+        share = np.array([z_[-k:].mean() / max(np.median(z_[:-k]), 1e-3) for z_ in z])
+        weakest = np.array([z_[-k:].max() for z_ in z])
+        for name, values, cuts in (
+            ("share of the level", share, shares),
+            ("all below", weakest, levels),
+        ):
+            for t in cuts:
+                refused = np.array(by_sequence, np.int64)[values < t]
+                wrong = int((~right[refused]).sum())
+                lines.append(f"last {k}, {name} {t}: {len(refused) - wrong} right, {wrong} false")
+    return lines
+
+
+def ran_ahead(details: dict[str, Any]) -> tuple[int, int, list[int]]:
+    """Part 7: (right, false, the false ones' queries) among the loops closed by a passed
+    sequence whose place runs ahead of a loop of the previous TRACKING_DROPOUT queries."""
+    sequences = np.array(details["per_query_sequence"], float)
+    loop, frames = loop_frames(details)
+    right = np.array(details["per_query_right"], bool)
+    route = Trajectories.single(int(max(frames.max(), 0)) + 1)
+    fastest = float(np.max(np.abs(SequenceModel().signed_speeds)))
+    refused = []
+    for i in (int(q) for q in np.flatnonzero(loop & (sequences[:, 3] == 1))):
+        behind = range(1, min(TRACKING_DROPOUT, i) + 1)
+        ahead = [runs_ahead(route, int(frames[i]), int(frames[i - g]), g, fastest) for g in behind]
+        if any(a is not None and loop[i - g] for g, a in zip(behind, ahead, strict=True)):
+            refused.append(i)
+    wrong = [int(i) for i in refused if not right[i]]
+    return len(refused) - len(wrong), len(wrong), wrong
+
+
 TRACKING_MARGIN = SequenceSettings.model_fields["sequence_margin_min_tracking"].default
 
 
@@ -287,6 +339,7 @@ def main() -> None:
         "--recent-z",
         help="part 5: comma-separated thresholds of the last frames' mean aligned_z",
     )
+    parser.add_argument("--run-ahead", action="store_true", help="part 7")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.reports and args.tolerance is None:
@@ -340,6 +393,17 @@ def main() -> None:
                         f"    last {g.frames}, mean >= {g.z_min}: {g.refused_right} right, "
                         f"{g.refused_false} false"
                     )
+                print("  guards against the sequence's own level (loops refused):")
+                for line in relative_guards(details, [0.2, 0.25, 0.3], [1.5, 2.0, 2.5]):
+                    entry.setdefault("relative_guards", []).append(line)
+                    print(f"    {line}")
+            if args.run_ahead:
+                kept_right, kept_false, examples = ran_ahead(details)
+                entry["run_ahead"] = [kept_right, kept_false, examples]
+                print(
+                    f"  places running ahead of a recent loop: {kept_right} right, "
+                    f"{kept_false} false {examples}"
+                )
             if details.get("per_query_sequence_z"):
                 held = unclosed_right(details, args.tolerance, args.cross_run_margin, args.required)
                 entry["unclosed_right"] = held

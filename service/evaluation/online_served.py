@@ -6,7 +6,7 @@ the adaptation it queues after every N revisit pairs its observations kept).
 
 A frame whose insert makes the atlas reach a milestone queues a calibration job
 (:mod:`service.app.milestones`), as in the service; here the job runs at once in this process
-with the job runner's own code (:func:`service.evaluation.served_pass.run_job_now`), as a
+with the job runner's own code (:func:`service.evaluation.served_jobs.run_job_now`), as a
 worker would between two frames, and the next frame is answered by the calibrated model
 version. The row's PR sweep runs over ``loop_probability`` (what the service thresholds) and
 its operating point is the service's own ``status == "loop"``.
@@ -14,18 +14,17 @@ its operating point is the service's own ``status == "loop"``.
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from service.app.catalog import AtlasService
 from service.evaluation.feature_cache import CachedFeatures
 from service.evaluation.loop_ground_truth import Trajectory
 from service.evaluation.online_service import frame_times, observe_frame, replay_atlas
-from service.evaluation.served_pass import PARTS, decision_parts, loop_counts, run_job_now
+from service.evaluation.served_jobs import JobRun, queued_jobs, run_queued
+from service.evaluation.served_pass import PARTS, decision_parts, loop_counts
 from service.evaluation.served_sweep import (
     answered_frames,
     decision_logit,
@@ -36,34 +35,6 @@ from service.ml.features import LocalFeatures
 from service.ml.pipeline import FeaturePipeline
 
 ANSWERS = 5  # candidates an observation returns (the API's default k)
-
-
-@dataclass(frozen=True)
-class JobRun:
-    """A job a frame's insert queued and the replay ran before the next frame.
-
-    Attributes:
-        frame: the trajectory frame whose insert queued it (its atlas then held frame + 1).
-        milestone: the calibration milestone it was queued for (None: another kind).
-        model_version: the version it published (None: it published none).
-        seconds: wall time of the job and of loading its version.
-        frames_at_fit: frames the calibration was fitted on.
-        min_inliers: the minimum inliers it calibrated on the atlas's hard impostors.
-        message: the job's one line to the operator (whether its version became active, and
-            the gate's figures for an adapt job).
-    """
-
-    job_id: int
-    kind: str
-    frame: int
-    milestone: int | None
-    status: str
-    model_version: int | None
-    seconds: float
-    frames_at_fit: int | None = None
-    min_inliers: int | None = None
-    error: str | None = None
-    message: str = ""
 
 
 @dataclass
@@ -109,17 +80,18 @@ def served_replay(
     dim = pipeline.local.descriptor_dim
     index_of: dict[int, int] = {}
     out = ServedReplay()
-    with replay_atlas(
-        trajectory,
-        pipeline,
-        alpha=pipeline.preset.alpha,
-        exclude_recent=exclude_recent,
-        consistency=consistency,
-        served=True,
-        adapt_after_pairs=adapt_after_pairs,
-    ) as service:
-        queued: list[int] = []
-        service.frames.enqueue = queued.append  # a worker that runs each job at once
+    with (
+        replay_atlas(
+            trajectory,
+            pipeline,
+            alpha=pipeline.preset.alpha,
+            exclude_recent=exclude_recent,
+            consistency=consistency,
+            served=True,
+            adapt_after_pairs=adapt_after_pairs,
+        ) as service,
+        queued_jobs(service) as queued,
+    ):  # a worker that runs each job at once
         config = service.queries.verification.config
         out.threshold = service.settings.loop_probability_min
         out.verification = {"matcher": config.matcher, "top": config.top}
@@ -147,30 +119,8 @@ def served_replay(
             out.stays.append(answer.stay_frames)
             out.ms.append(ms)
             while queued:
-                out.jobs.append(_run(service, queued.pop(0), t))
+                out.jobs.append(run_queued(service, queued.pop(0), t))
     return out
-
-
-def _run(service: AtlasService, job_id: int, frame: int) -> JobRun:
-    """Run one queued job now; a failed job is reported, the replay goes on (as the service
-    goes on answering with its active version)."""
-    start = time.perf_counter()
-    job = run_job_now(service, job_id)
-    metrics = job.metrics or {}
-    verification = metrics.get("verification") or {}
-    return JobRun(
-        job_id=job.id,
-        kind=job.kind,
-        frame=frame,
-        milestone=(job.params or {}).get("milestone"),
-        status=job.status,
-        model_version=job.model_version,
-        seconds=round(time.perf_counter() - start, 3),
-        frames_at_fit=metrics.get("frames_at_fit"),
-        min_inliers=verification.get("min_inliers"),
-        error=job.error,
-        message=job.message or "",
-    )
 
 
 # the row's own sweep first: the decision's logit (ordered as loop_probability, which ties at

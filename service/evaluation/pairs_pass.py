@@ -48,12 +48,12 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.protocol import MethodResult
 from service.evaluation.retraining_pass import _subset, query_submaps, revisit_shots
 from service.evaluation.score_honesty import impostor_exceedance
+from service.evaluation.served_jobs import run_job_now
 from service.evaluation.served_pass import (
     PARTS,
     QUERY_SUBMAP,
     ServedAnswers,
     as_stored,
-    run_job_now,
     served_answers,
     served_method,
     served_settings,

@@ -64,7 +64,7 @@ def served_jobs_lines(methods: Sequence[MethodResult]) -> list[str]:
         ran = m.details.get("jobs") or []
         if ran:
             jobs = "; ".join(
-                f"{j['kind']} after query {j['after_query']}: {j['status']}"
+                f"{j['kind']} after query {j['frame']}: {j['status']}"
                 + (f", {j['message']}" if j["message"] else "")
                 for j in ran
             )

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,12 +31,10 @@ from service.config import Settings
 from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, precision_recall
 from service.evaluation.protocol import MethodResult, evaluate_ranking
+from service.evaluation.served_jobs import JobRun, queued_jobs, run_queued
 from service.evaluation.served_sweep import answered_frames, swept_probability, swept_score
-from service.jobs.retraining import JobRunner
 from service.ml.features import FrameFeatures, LocalFeatures
-from service.storage import jobs
 from service.storage import repository as repo
-from service.storage.models import Job
 
 PARTS = ("inliers", "inlier_ratio", "rival", "score", "sequence")
 # the settings a served answer takes at their defaults (the harness's atlas turns them off)
@@ -81,7 +79,7 @@ class ServedAnswers:
     sequence_z: list[list[float]] = field(default_factory=list)
     # the jobs the observations queued, each run before the next query (see served_answers),
     # and the revisit pairs after which they queued an adaptation (0: never)
-    jobs: list[dict[str, Any]] = field(default_factory=list)
+    jobs: list[JobRun] = field(default_factory=list)
     adapt_after_pairs: int = 0
 
     def subset(self, keep: np.ndarray) -> ServedAnswers:
@@ -152,7 +150,7 @@ def served_answers(
     candidates: list[list[list[float]]] = []
     sequences: list[list[float]] = []
     sequence_z: list[list[float]] = []
-    ran: list[dict[str, Any]] = []
+    ran: list[JobRun] = []
     adapting = adapt_after_pairs if sequence_length else 0
     with served_settings(service, extractor) as settings, queued_jobs(service, adapting) as queued:
         config = service.queries.verification.config
@@ -189,7 +187,7 @@ def served_answers(
             sequences.append(sequence_row(answer, frame_to_reference))
             sequence_z.append(list(answer.sequence.aligned_z) if answer.sequence else [])
             while queued:
-                ran.append(job_summary(run_job_now(service, queued.pop(0)), query=i))
+                ran.append(run_queued(service, queued.pop(0), frame=i))
     return ServedAnswers(
         Ranking(np.array(indices, np.int64), np.array(scores, np.float64)),
         status,
@@ -211,36 +209,6 @@ def served_answers(
         ran,
         adapting,
     )
-
-
-@contextmanager
-def queued_jobs(service: AtlasService, adapt_after_pairs: int) -> Iterator[list[int]]:
-    """While the block runs: automatic adaptation after ``adapt_after_pairs`` revisit pairs
-    (0: off; the harness's atlas keeps it off elsewhere, its protocols adapt explicitly), and
-    the ids of the jobs the service queues collected in the list yielded, for the caller to
-    run, instead of going to the process's queue."""
-    queued: list[int] = []
-    before = (service.settings, service.frames.enqueue)
-    service.settings = service.settings.model_copy(update={"adapt_after_pairs": adapt_after_pairs})
-    service.frames.enqueue = queued.append
-    try:
-        yield queued
-    finally:
-        service.settings, service.frames.enqueue = before
-
-
-def job_summary(job: Job, query: int) -> dict[str, Any]:
-    """A job a query's observation queued, as the report lists it: its kind, the query after
-    which it ran, its status, the version it published and its one line to the operator."""
-    return {
-        "job": job.id,
-        "kind": job.kind,
-        "after_query": query,
-        "status": job.status,
-        "model_version": job.model_version,
-        "message": job.message or "",
-        "error": job.error,
-    }
 
 
 def fitted_min_inliers(service: AtlasService, atlas: str) -> dict[str, Any] | None:
@@ -337,7 +305,7 @@ def served_method(
         "per_query_candidates": served.candidates,
         "per_query_sequence": served.sequences,
         "per_query_sequence_z": served.sequence_z,
-        "jobs": served.jobs,
+        "jobs": [asdict(job) for job in served.jobs],
         "per_query_closable": [int(c) for c in served.closable],
         "per_query_right": right.astype(int).tolist(),
     }
@@ -364,15 +332,3 @@ def loop_counts(
             sum(1 for s, r in zip(status, right, strict=True) if r and s == "new_place")
         ),
     }
-
-
-def run_job_now(service: AtlasService, job_id: int, settings: Settings | None = None) -> Job:
-    """Run a queued job in this process as a worker would (the job runner's own code, with
-    ``settings``, default the service's), then bring the service's loaded atlases up to date;
-    returns the finished job row."""
-    JobRunner(settings or service.settings, service.sessions).run(job_id)
-    with service.sessions() as session:
-        job = jobs.get_job(session, job_id=job_id)
-        session.expunge(job)
-    service.catch_up()
-    return job

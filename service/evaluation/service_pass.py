@@ -34,11 +34,11 @@ from service.evaluation.feature_cache import (
     file_stamp,
 )
 from service.evaluation.metrics import Ranking
+from service.evaluation.served_jobs import run_job_now
 from service.evaluation.served_pass import (
     ServedAnswers,
     as_stored,
     at_served_defaults,
-    run_job_now,
     served_answers,
 )
 from service.ml.calibration import CalibrationInputs

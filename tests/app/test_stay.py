@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.evaluation.served_pass import run_job_now
+from service.evaluation.served_jobs import run_job_now
 from service.ml.stays import BREAK, FADE, current_stay
 from tests.api.helpers import create_atlas
 from tests.conftest import make_settings, wait_ready

@@ -199,9 +199,9 @@ def test_the_served_drive_adapts_as_the_service_would(  # type: ignore[no-untype
     assert drive.adapt_after_pairs == 10  # the row's label says so
     assert drive.jobs, "the drive kept 10 pairs: the service queued an adaptation"
     first = drive.jobs[0]
-    assert first["kind"] == "adapt" and first["status"] == "succeeded", first
-    assert 0 < first["after_query"] < len(dataset.queries) - 1
-    assert first["message"].startswith(f"model version {first['model_version']} ")
+    assert first.kind == "adapt" and first.status == "succeeded", first
+    assert 0 < first.frame < len(dataset.queries) - 1
+    assert first.message.startswith(f"model version {first.model_version} ")
     # the anonymous served row asked before the drive: the atlas's own setting is off
     assert result.served is not None and not result.served.jobs
 

@@ -58,10 +58,12 @@ from typing import Any
 
 import numpy as np
 
+from service.app import sequence_rules
+from service.app.sequence_rules import TrackedLoop
 from service.config_sections import SequenceSettings
 from service.evaluation.served_pass import PARTS
 from service.ml.sequences import SequenceSettings as SequenceModel
-from service.ml.sequences import Trajectories, runs_ahead
+from service.ml.sequences import Trajectories
 from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT, TRACKING_STEP
 
 
@@ -129,6 +131,14 @@ def loop_frames(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return loop, frames
 
 
+def sequence_loops(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """The queries answered ``loop`` by a passed sequence (indices, in order), and every
+    query's rightness as the report scored it."""
+    sequences = np.array(details["per_query_sequence"], float)
+    loop, _ = loop_frames(details)
+    return np.flatnonzero(loop & (sequences[:, 3] == 1)), np.array(details["per_query_right"], bool)
+
+
 def tracking(
     details: dict[str, Any],
     margin: float,
@@ -178,11 +188,8 @@ class RecentGuard:
 def recent_guards(details: dict[str, Any], thresholds: list[float]) -> list[RecentGuard]:
     """What each guard on the mean ``aligned_z`` of the last 1-5 frames would refuse among the
     loops a passed sequence closed."""
-    sequences = np.array(details["per_query_sequence"], float)
+    by_sequence, right = sequence_loops(details)
     evidence = details["per_query_sequence_z"]
-    loop, _ = loop_frames(details)
-    right = np.array(details["per_query_right"], bool)
-    by_sequence = np.flatnonzero(loop & (sequences[:, 3] == 1))
     out = []
     for k in range(1, 6):
         recent = np.array([np.mean(evidence[i][-k:]) for i in by_sequence])
@@ -197,11 +204,9 @@ def relative_guards(details: dict[str, Any], shares: list[float], levels: list[f
     """Part 5's guards against the sequence's own level: per k, the loops a passed sequence
     closed that "last k frames' mean aligned_z below a share of the median before them" and
     "last k frames all below t" would refuse, as lines (right, false)."""
-    sequences = np.array(details["per_query_sequence"], float)
+    closed, right = sequence_loops(details)
     evidence = details["per_query_sequence_z"]
-    loop, _ = loop_frames(details)
-    right = np.array(details["per_query_right"], bool)
-    by_sequence = [i for i in np.flatnonzero(loop & (sequences[:, 3] == 1)) if len(evidence[i]) > 3]
+    by_sequence = [i for i in closed if len(evidence[i]) > 3]
     lines = []
     for k in (1, 2, 3):
         z = [np.asarray(evidence[i], float) for i in by_sequence]
@@ -220,19 +225,22 @@ def relative_guards(details: dict[str, Any], shares: list[float], levels: list[f
 
 def ran_ahead(details: dict[str, Any]) -> tuple[int, int, list[int]]:
     """Part 7: (right, false, the false ones' queries) among the loops closed by a passed
-    sequence whose place runs ahead of a loop of the previous TRACKING_DROPOUT queries."""
-    sequences = np.array(details["per_query_sequence"], float)
+    sequence whose place runs ahead of a loop of the previous TRACKING_DROPOUT queries, by the
+    service's own rule (:func:`service.app.sequence_rules.ran_ahead`)."""
+    closed, right = sequence_loops(details)
     loop, frames = loop_frames(details)
-    right = np.array(details["per_query_right"], bool)
     route = Trajectories.single(int(max(frames.max(), 0)) + 1)
-    fastest = float(np.max(np.abs(SequenceModel().signed_speeds)))
+    model = SequenceModel()
     refused = []
-    for i in (int(q) for q in np.flatnonzero(loop & (sequences[:, 3] == 1))):
-        behind = range(1, min(TRACKING_DROPOUT, i) + 1)
-        ahead = [runs_ahead(route, int(frames[i]), int(frames[i - g]), g, fastest) for g in behind]
-        if any(a is not None and loop[i - g] for g, a in zip(behind, ahead, strict=True)):
+    for i in (int(q) for q in closed):
+        recent = [
+            TrackedLoop(int(frames[i - g]), g)
+            for g in range(1, min(TRACKING_DROPOUT, i) + 1)
+            if loop[i - g]
+        ]
+        if sequence_rules.ran_ahead(route, int(frames[i]), recent, model) is not None:
             refused.append(i)
-    wrong = [int(i) for i in refused if not right[i]]
+    wrong = [i for i in refused if not right[i]]
     return len(refused) - len(wrong), len(wrong), wrong
 
 

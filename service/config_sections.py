@@ -273,7 +273,8 @@ class SequenceSettings(BaseSettings):
         f"the robot's newest loop within its last {TRACKING_DROPOUT} frames (the same "
         "trajectory, a frame along it per frame driven since); the first loop of a revisit still "
         "needs sequence_margin_min (or the own-run margin). 2.5: above every false loop a wider "
-        "window (-1..3 frames) let tracking close on the first half of Nordland's queries (margins 2.16-2.33); continuing by one frame, "
+        "window (-1..3 frames) let tracking close on the first half of Nordland's queries "
+        "(margins 2.16-2.33); continuing by one frame, "
         "none down to 1.5 added one (benchmarks/decision_headroom.py). Unset: no tracking.",
     )
     consistency_frames: int = Field(

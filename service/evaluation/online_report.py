@@ -68,8 +68,8 @@ def _jobs(rows: list[dict[str, Any]]) -> list[str]:
         "| min inliers | seconds | message",
         "A frame whose insert reached a calibration milestone (a calibrate job) or whose "
         "observation brought the atlas's new revisit pairs to the setting's number (an adapt "
-        "job: LOOPNET_ADAPT_AFTER_PAIRS, or N in rows `-adaptN`) queued the job; it ran before the next frame, which the new model "
-        "version answered.",
+        "job: LOOPNET_ADAPT_AFTER_PAIRS, or N in rows `-adaptN`) queued the job; it ran before "
+        "the next frame, which the new model version answered.",
     )
     for row in rows:
         for job in row["jobs"]:

@@ -13,6 +13,7 @@ from service.api.closed_sets import (
 )
 from service.app.names import NAME_PATTERN
 from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT
+from service.ml.sequences.off_map import OFF_MAP_FRAMES, OFF_MAP_SLACK, OFF_MAP_Z
 
 
 class ErrorOut(BaseModel):
@@ -182,7 +183,10 @@ class SequenceOut(BaseModel):
         default_factory=list,
         description="Each frame's own evidence for its aligned reference frame, oldest first: "
         "its similarity standardised as the score's terms are (0 where none aligned). The last "
-        f"is this query's; a sequence passes only where it is at least {NEWEST_Z_MIN:g}.",
+        f"is this query's; a sequence passes only where it is at least {NEWEST_Z_MIN:g}, and "
+        f"where none of the last 2-{OFF_MAP_FRAMES} frames' means falls short of a robot on the "
+        f"map ({OFF_MAP_Z:g} less {OFF_MAP_SLACK:g} / frames: a robot that has left the mapped "
+        "route).",
     )
     reason: str | None = Field(
         None,

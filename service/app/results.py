@@ -22,7 +22,8 @@ class SequenceAnswer:
     ``contrast_frames``: the robot's earlier frames the newest was contrasted with (0: scored on
     plain vectors, :mod:`service.ml.sequences.contrast`). ``aligned_z``: each frame's own
     evidence for its aligned frame (standardised similarity, oldest first; the newest one's
-    must reach :data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`). ``reason``: why it
+    must reach :data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`, and the newest few
+    may not together look off the map, :mod:`service.ml.sequences.off_map`). ``reason``: why it
     did not pass (None when it passed)."""
 
     score: float

@@ -4,7 +4,8 @@ The rules :class:`~service.app.sequences.SequenceScorer` applies to its best pla
 frame must favour that place itself
 (:data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`), the place may not run ahead of
 the robot's loops of its last few frames faster than the sequence's speeds carry a robot
-(:func:`ran_ahead`), and a place that continues the robot's newest loop needs only the tracking
+(:func:`ran_ahead`), the newest few frames together may not look like a robot that has left the
+map (:func:`service.ml.sequences.off_map.left_the_map`), and a place that continues the robot's newest loop needs only the tracking
 margin (:func:`recent_loops`, :func:`service.ml.sequences.margin_needed`). What fails is said
 in an operator's words (:func:`sequence_shortfalls`).
 """
@@ -23,6 +24,7 @@ from service.ml.sequences.distinctiveness import (
     RUN_AHEAD_SLACK,
     TRACKING_DROPOUT,
 )
+from service.ml.sequences.off_map import OffMap
 from service.storage import repository as repo
 
 
@@ -86,10 +88,12 @@ def sequence_shortfalls(
     required: int,
     newest_z: float,
     outran: RanAhead | None = None,
+    off_map: OffMap | None = None,
 ) -> list[str]:
     """Why a sequence is not a loop on its own evidence, in an operator's words (empty: it
     passed): too small a margin over its best rival, too few frames aligned, a newest frame
-    that does not favour the place itself, or a place running ahead of the robot's loops."""
+    that does not favour the place itself, a place running ahead of the robot's loops, or
+    newest frames that together look like a robot off the map."""
     out = []
     if margin < needed:
         out.append(f"margin {margin:.2f} is below {needed:g}")
@@ -105,5 +109,11 @@ def sequence_shortfalls(
             f"its place lies {outran.frames} map frames past the loop closed {since} "
             f"frame{'s' if since > 1 else ''} ago, more than the {outran.allowed:g} "
             "the sequence's speeds allow"
+        )
+    if off_map is not None:
+        out.append(
+            f"its last {off_map.frames} frames favour the place by a mean aligned_z of "
+            f"{off_map.mean_z:.2f}, below the {off_map.needed:g} of a robot on the map "
+            "(it may have left the mapped route)"
         )
     return out

@@ -47,6 +47,7 @@ from service.ml.sequences import (
     sequence_starts,
 )
 from service.ml.sequences.contrast import contrasted_query
+from service.ml.sequences.off_map import left_the_map
 from service.storage import repository as repo
 
 # Every frame of the sequence proposes candidates (see SequenceSettings); the settings' default.
@@ -269,6 +270,7 @@ class SequenceScorer:
             self.consistency.required,
             best.newest_z,
             ran_ahead(view.trajectories, best.reference, loops, settings),
+            left_the_map(best.aligned_z, best.aligned),
         )
         return SequenceAnswer(
             score=round(float(best.score), 6),

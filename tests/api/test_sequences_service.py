@@ -397,6 +397,43 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
     assert answers[-1].sequence is not None and answers[-1].sequence.aligned_z[-1] >= 1.0
 
 
+SCATTERED = [0, 5, 13, 19, 34, 38]  # places far from the rover's route and from each other
+
+
+def off_the_map(place: int, weight: float) -> FrameFeatures:
+    """A frame from somewhere the map does not hold that looks a little like many mapped
+    places and, by ``weight``, like ``place``: its own evidence for ``place`` is weak."""
+    return features(weight * G[place] + G[SCATTERED].sum(axis=0) + 2.0 * G[PLACES + 2])
+
+
+def test_a_robot_whose_newest_frames_look_off_the_map_is_not_carried_along_it(
+    data_dir: Path, pipeline
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys closes its loop at place 24; then the rover leaves the route: its
+    next two frames show somewhere unmapped, each only faintly like the place the route would
+    reach. The second one alone favours that place enough (aligned_z >= NEWEST_Z_MIN) and the
+    sequence's margin passes on the three route frames before it; what says "lost" is the two
+    newest frames together (service.ml.sequences.off_map), and the answer says so."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
+        first = observe(client, off_the_map(25, 0.1), 105.0, sequence_length=5)
+        second = observe(client, off_the_map(26, 1.0), 106.0, sequence_length=5)
+    assert first.status != "loop" and second.status != "loop"
+    sequence = second.sequence
+    assert sequence is not None and sequence.frame_id == ids[26]
+    assert sequence.margin >= sequence.margin_min and sequence.length == 5
+    assert sequence.aligned_z[-1] >= 1.0 > sum(sequence.aligned_z[-2:]) / 2 + 0.25
+    assert not sequence.passed and second.loop_frame_id is None
+    newest = sequence.aligned_z[-2:]
+    assert sequence.reason == (
+        f"its last 2 frames favour the place by a mean aligned_z of {sum(newest) / 2:.2f}, "
+        "below the 0.75 of a robot on the map (it may have left the mapped route)"
+    )
+
+
 @pytest.mark.parametrize("dropped", [1, 2])
 def test_a_track_lost_for_a_frame_or_two_is_picked_up_again(
     data_dir: Path, pipeline, dropped: int

@@ -1,0 +1,54 @@
+"""Has the robot left the map? A change test over the newest frames of a sequence match.
+
+A robot that leaves the mapped route drags a tail of frames that still align along it, so its
+sequence keeps a large margin for several frames while its newest frames favour the predicted
+place only weakly: on Nordland's off-route proxy (winter frames from an unmapped stretch of the
+line) an off-map frame's ``aligned_z`` has a median about 0.9, an on-route one about 4. One weak
+frame happens on the route too (a bland stretch, 10 % of the newest frames there score below
+1.25), so one frame cannot say "lost"; several weak frames in a row can. This is CUSUM on the
+newest frames' evidence: each frame adds ``OFF_MAP_Z - aligned_z``, and the robot is taken to
+have left the map when, for some ``k`` of its last 2-``OFF_MAP_FRAMES`` frames, the sum exceeds
+``OFF_MAP_SLACK`` (the mean of the last k frames is below ``OFF_MAP_Z - OFF_MAP_SLACK / k``:
+0.75 for two frames, 1.0 for three, 1.125 for four).
+
+Chosen offline on the development sets' served reports (``benchmarks/decision_headroom.py
+--off-map``): with automatic adaptation it refused 9 of the off-route proxy's 14 false loops
+(all 2-7 frames off the map) for 7 right loops there and 2 on Nordland's 2,814
+(benchmarks/RESULTS.md, issue 25, stop 45). Its first frame off the map is beyond any test of
+the frames' own evidence: that is what ``NEWEST_Z_MIN`` keeps small.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+# A frame on the map favours its aligned place by at least this many standard deviations on
+# average; each frame below it counts towards "off the map".
+OFF_MAP_Z = 1.5
+# How far short of OFF_MAP_Z the newest frames may fall together before the robot counts as off
+# the map.
+OFF_MAP_SLACK = 1.5
+# The newest frames the test looks back over (at least 2: one frame alone is NEWEST_Z_MIN's).
+OFF_MAP_FRAMES = 4
+
+
+class OffMap(NamedTuple):
+    """The newest frames whose evidence says the robot has left the map."""
+
+    frames: int  # how many of the newest frames
+    mean_z: float  # their mean aligned_z
+    needed: float  # the mean a robot on the map shows over that many frames
+
+
+def left_the_map(aligned_z: Sequence[float], aligned: Sequence[int] | None = None) -> OffMap | None:
+    """The shortest run of newest frames (2 to :data:`OFF_MAP_FRAMES`) of a sequence match
+    whose evidence falls short of a robot on the map, None when none does. ``aligned_z`` and
+    ``aligned`` are the match's (:class:`~service.ml.sequences.SequenceMatch`, oldest first);
+    frames that aligned with no map frame (``aligned`` -1) carry no evidence and are skipped."""
+    evidence = [float(z) for i, z in enumerate(aligned_z) if aligned is None or aligned[i] >= 0]
+    for k in range(2, min(OFF_MAP_FRAMES, len(evidence)) + 1):
+        newest = evidence[-k:]
+        if k * OFF_MAP_Z - sum(newest) > OFF_MAP_SLACK:
+            return OffMap(k, sum(newest) / k, OFF_MAP_Z - OFF_MAP_SLACK / k)
+    return None

@@ -462,10 +462,11 @@ def test_a_place_running_ahead_of_the_robots_loops_is_not_its_sequences_loop(
     data_dir: Path, pipeline
 ) -> None:  # type: ignore[no-untyped-def]
     """The drive past decoys closes its loop at place 24; one second later the rover's frames
-    show places 30, 31, 32, 33: further along the route than any speed of the sequence model
-    (at most 1.25 map frames a frame, and one of rounding) carries it from that loop. Its
-    sequence names those places but does not pass while the loop is one of its last
-    TRACKING_DROPOUT frames', and says why; the next frame's sequence passes."""
+    show places 30 to 34: further along the route than any speed of the sequence model (at
+    most 1.25 map frames a frame, and one of rounding) carries it from that loop. Its sequence
+    names those places but does not pass while the loop is one of the frames it reads back
+    (its last TRACKING_DROPOUT, here fewer: its sequence of 5), and says why; the first frame
+    whose sequence no longer holds the loop passes."""
     with make_client(
         data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
     ) as client:
@@ -473,19 +474,19 @@ def test_a_place_running_ahead_of_the_robots_loops_is_not_its_sequences_loop(
         assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
         jumped = [
             observe(client, features(G[place]), 105.0 + k, sequence_length=5)
-            for k, place in enumerate([30, 31, 32, 33])
+            for k, place in enumerate([30, 31, 32, 33, 34])
         ]
     sequences = [answer.sequence for answer in jumped]
     assert all(s is not None for s in sequences)
     named = [(ids.index(s.frame_id), s.passed) for s in sequences if s is not None]
-    assert named[1:] == [(31, False), (32, False), (33, True)]
+    assert named[1:] == [(31, False), (32, False), (33, False), (34, True)]
     reason = sequences[2].reason if sequences[2] is not None else None
     # its margin alone would pass: what fails is the pace
     assert reason == (
         "its place lies 8 map frames past the loop closed 3 frames ago, more than the 4.75 "
         "the sequence's speeds allow"
     )
-    assert TRACKING_DROPOUT == 3
+    assert TRACKING_DROPOUT >= 4
 
 
 @pytest.mark.parametrize("tracking", [1.0, None])

@@ -45,12 +45,11 @@ def screen(details: dict[str, Any], z: float, slack: float, frames: int) -> dict
     """Right and false loops the test with these constants refuses, and the false ones kept."""
     closed, right = sequence_loops(details)
     evidence = details["per_query_sequence_z"]
-    saved = off_map.OFF_MAP_Z, off_map.OFF_MAP_SLACK, off_map.OFF_MAP_FRAMES
-    off_map.OFF_MAP_Z, off_map.OFF_MAP_SLACK, off_map.OFF_MAP_FRAMES = z, slack, frames
-    try:
-        refused = [int(i) for i in closed if off_map.left_the_map(evidence[i]) is not None]
-    finally:
-        off_map.OFF_MAP_Z, off_map.OFF_MAP_SLACK, off_map.OFF_MAP_FRAMES = saved
+    refused = {
+        int(i)
+        for i in closed
+        if off_map.left_the_map(evidence[i], reference_z=z, slack=slack, frames=frames) is not None
+    }
     false = [int(i) for i in closed if not right[i]]
     return {
         "z": z,
@@ -60,7 +59,7 @@ def screen(details: dict[str, Any], z: float, slack: float, frames: int) -> dict
         "false": len(false),
         "refused_right": sum(1 for i in refused if right[i]),
         "refused_false": sum(1 for i in refused if not right[i]),
-        "false_kept": [i for i in false if i not in set(refused)],
+        "false_kept": [i for i in false if i not in refused],
     }
 
 

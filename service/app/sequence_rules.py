@@ -5,9 +5,10 @@ frame must favour that place itself
 (:data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`), the place may not run ahead of
 the robot's loops of its last few frames faster than the sequence's speeds carry a robot
 (:func:`ran_ahead`), the newest few frames together may not look like a robot that has left the
-map (:func:`service.ml.sequences.off_map.left_the_map`), and a place that continues the robot's newest loop needs only the tracking
-margin (:func:`recent_loops`, :func:`service.ml.sequences.margin_needed`). What fails is said
-in an operator's words (:func:`sequence_shortfalls`).
+map (:func:`service.ml.sequences.off_map.left_the_map`), and a place that continues the robot's
+newest loop needs only the tracking margin (:func:`recent_loops`,
+:func:`service.ml.sequences.margin_needed`). What fails is said in an operator's words
+(:func:`sequence_shortfalls`).
 """
 
 from __future__ import annotations

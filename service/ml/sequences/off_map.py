@@ -5,8 +5,8 @@ sequence keeps a large margin for several frames while its newest frames favour 
 place only weakly: on Nordland's off-route proxy (winter frames from an unmapped stretch of the
 line) an off-map frame's ``aligned_z`` has a median of 0.8-0.9, an on-route one 3.7-4.3. One
 weak frame happens on the route too (a bland stretch: a tenth of the newest frames there score
-below 0.9-1.2), so one frame cannot say "lost"; several weak frames in a row can. This is CUSUM on the
-newest frames' evidence: each frame adds ``OFF_MAP_Z - aligned_z``, and the robot is taken to
+below 0.9-1.2), so one frame cannot say "lost"; several weak frames in a row can. This is CUSUM
+on the newest frames' evidence: each frame adds ``OFF_MAP_Z - aligned_z``, and the robot is taken to
 have left the map when, for some ``k`` of its last 2-``OFF_MAP_FRAMES`` frames, the sum exceeds
 ``OFF_MAP_SLACK`` (the mean of the last k frames is below ``OFF_MAP_Z - OFF_MAP_SLACK / k``:
 0.75 for two frames, 1.0 for three, 1.125 for four).
@@ -42,14 +42,22 @@ class OffMap(NamedTuple):
     needed: float  # the mean a robot on the map shows over that many frames
 
 
-def left_the_map(aligned_z: Sequence[float], aligned: Sequence[int] | None = None) -> OffMap | None:
-    """The shortest run of newest frames (2 to :data:`OFF_MAP_FRAMES`) of a sequence match
-    whose evidence falls short of a robot on the map, None when none does. ``aligned_z`` and
-    ``aligned`` are the match's (:class:`~service.ml.sequences.SequenceMatch`, oldest first);
-    frames that aligned with no map frame (``aligned`` -1) carry no evidence and are skipped."""
+def left_the_map(
+    aligned_z: Sequence[float],
+    aligned: Sequence[int] | None = None,
+    *,
+    reference_z: float = OFF_MAP_Z,
+    slack: float = OFF_MAP_SLACK,
+    frames: int = OFF_MAP_FRAMES,
+) -> OffMap | None:
+    """The shortest run of newest frames (2 to ``frames``) of a sequence match whose evidence
+    falls short of a robot on the map, None when none does. ``aligned_z`` and ``aligned`` are
+    the match's (:class:`~service.ml.sequences.SequenceMatch`, oldest first); frames that
+    aligned with no map frame (``aligned`` -1) carry no evidence and are skipped. The constants
+    default to the service's; ``benchmarks/off_map_guard.py`` screens others."""
     evidence = [float(z) for i, z in enumerate(aligned_z) if aligned is None or aligned[i] >= 0]
-    for k in range(2, min(OFF_MAP_FRAMES, len(evidence)) + 1):
+    for k in range(2, min(frames, len(evidence)) + 1):
         newest = evidence[-k:]
-        if k * OFF_MAP_Z - sum(newest) > OFF_MAP_SLACK:
-            return OffMap(k, sum(newest) / k, OFF_MAP_Z - OFF_MAP_SLACK / k)
+        if k * reference_z - sum(newest) > slack:
+            return OffMap(k, sum(newest) / k, reference_z - slack / k)
     return None

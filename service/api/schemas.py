@@ -12,7 +12,7 @@ from service.api.closed_sets import (
     PlaceStatusValue,
 )
 from service.app.names import NAME_PATTERN
-from service.ml.sequences.distinctiveness import NEWEST_Z_MIN, TRACKING_DROPOUT
+from service.ml.sequences.distinctiveness import CONFIRM_Z, NEWEST_Z_MIN, TRACKING_DROPOUT
 from service.ml.sequences.off_map import OFF_MAP_FRAMES, OFF_MAP_SLACK, OFF_MAP_Z
 
 
@@ -146,6 +146,11 @@ class SubmapPredictionOut(BaseModel):
     reason: str | None = Field(None, description="Why no prediction is given, when unavailable.")
 
 
+class DeferredLoopOut(BaseModel):
+    frame_id: int = Field(description="The robot's frame whose loop was pending.")
+    loop_frame_id: int = Field(description="The frame to close that frame's loop with.")
+
+
 class SequenceOut(BaseModel):
     score: float = Field(
         description="Sequence score of the best place: standardised similarities summed along "
@@ -191,8 +196,17 @@ class SequenceOut(BaseModel):
     reason: str | None = Field(
         None,
         description='Why the sequence is not a loop on its own evidence, e.g. "margin 3.20 is '
-        'below 4.5" or "this frame\'s own evidence (aligned_z 0.41) is below 1"; null when it '
-        "passed.",
+        'below 4.5" or "this frame\'s own evidence (aligned_z 0.41) is below 1", or why its '
+        "loop waits for the robot's next frame (awaits_next); null when it passed and does not "
+        "wait.",
+    )
+    awaits_next: bool = Field(
+        False,
+        description="The sequence passed, but this frame's own evidence (the last aligned_z) is "
+        f"below {CONFIRM_Z:g}: a robot's first frame off the mapped route still aligns along it "
+        "by the frames behind it. The loop is not answered now (status 'candidate', "
+        "pending_loop_frame_id); the robot's next observation confirms it (its answer's "
+        "'confirmed') when its own loop is the same place.",
     )
     contrast_frames: int = Field(
         0,
@@ -278,9 +292,11 @@ class QueryOut(BaseModel):
     status: PlaceStatusValue = Field(
         description="'loop': loop_closure holds and the robot's last consistency_frames "
         "observations agree on one place, or the robot's sequence passed on its own "
-        "(sequence.passed); 'candidate': loop_closure holds, not yet consistent, or the match is "
-        "more likely the same place than not (decision.loop_probability >= 0.5) without "
-        "reaching the loop threshold; 'new_place': nothing is likely."
+        "(sequence.passed) with this frame's own evidence strong enough to answer at once; "
+        "'candidate': loop_closure holds, not yet consistent, or the sequence's loop waits for "
+        "the robot's next frame (pending_loop_frame_id), or the match is more likely the same "
+        "place than not (decision.loop_probability >= 0.5) without reaching the loop threshold; "
+        "'new_place': nothing is likely."
     )
     new_place: bool = Field(description="Nothing in the atlas is likely the same place.")
     consistent: int = Field(
@@ -291,6 +307,19 @@ class QueryOut(BaseModel):
         description="When status is 'loop', the frame to close the loop with: the match when the "
         "single-frame answer passed consistently, else the sequence's aligned frame "
         "(sequence.frame_id); null otherwise.",
+    )
+    pending_loop_frame_id: int | None = Field(
+        None,
+        description="The frame a passed sequence would close the loop with, left to the robot's "
+        "next observation to confirm (sequence.awaits_next; status 'candidate'): do not close it "
+        "yet. Null otherwise.",
+    )
+    confirmed: DeferredLoopOut | None = Field(
+        None,
+        description="The loop the robot's previous observation left pending, confirmed by this "
+        "one (its loop, answered or pending, is the same place): close it now, between that "
+        "frame and loop_frame_id. Null when none was pending or this frame does not confirm it "
+        "(the pending loop is then dropped).",
     )
     sequence: SequenceOut | None = Field(
         None,

@@ -4,6 +4,7 @@ answer hands to :func:`service.ml.decision.decide_loop`, and the status it leads
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from service.app.results import Candidate, SequenceAnswer
 from service.app.robot_evidence import Verdict
@@ -119,5 +120,5 @@ def probable_candidate(verdict: Verdict, decision: Decision) -> Verdict:
     ``candidate``: not certain enough to close a loop, not evidence of a new place either."""
     p = decision.loop_probability
     if verdict.status == PlaceStatus.NEW_PLACE and p is not None and p >= CANDIDATE_PROBABILITY:
-        return Verdict(PlaceStatus.CANDIDATE, verdict.consistent)
+        return replace(verdict, status=PlaceStatus.CANDIDATE)
     return verdict

@@ -137,12 +137,14 @@ class FrameIngest:
         features: FrameFeatures,
         proposals: list[int] | None = None,
         loop_frame_id: int | None = None,
+        loop_pending: bool = False,
     ) -> Frame:
         """Commit a validated frame's rows in one transaction; the embedding is then computed
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
         own search found (an observation's), kept for sequence scoring; ``loop_frame_id``: the
-        frame that observation closed a loop with."""
+        frame that observation closed a loop with (``loop_pending``: or left to the robot's next
+        frame to confirm)."""
         if self.states.store_kind == PGVECTOR:  # load the atlas (and its table) beforehand
             with self.sessions() as session:
                 self.states.loaded(self.checked_atlas(session, atlas_name).id)
@@ -160,6 +162,7 @@ class FrameIngest:
                 features=features,
                 proposals=proposals,
                 loop_frame_id=loop_frame_id,
+                loop_pending=loop_pending,
             )
             in_table = self.states.store_kind == PGVECTOR
             revision = change_feed.record(  # pgvector: the feed only orders (no frame rows)

@@ -124,7 +124,13 @@ class Observations:
             fields=fields,
             features=features,
             proposals=result.proposals,
-            loop_frame_id=result.loop_frame_id,  # set only for a loop
+            # a loop, or one left to the robot's next frame: either may be tracked
+            loop_frame_id=(
+                result.loop_frame_id
+                if result.loop_frame_id is not None
+                else result.pending_loop_frame_id
+            ),
+            loop_pending=result.pending_loop_frame_id is not None,
         )
         return result, frame
 

@@ -300,6 +300,8 @@ class AtlasQueries(Observations):
             new_place=verdict.status == PlaceStatus.NEW_PLACE,
             consistent=verdict.consistent,
             loop_frame_id=verdict.loop_frame_id,
+            pending_loop_frame_id=verdict.pending_loop_frame_id,
+            confirmed=verdict.confirmed,
             sequence=sequence,
             proposals=found.proposals,
             decision=decision,

@@ -23,8 +23,10 @@ class SequenceAnswer:
     plain vectors, :mod:`service.ml.sequences.contrast`). ``aligned_z``: each frame's own
     evidence for its aligned frame (standardised similarity, oldest first; the newest one's
     must reach :data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`, and the newest few
-    may not together look off the map, :mod:`service.ml.sequences.off_map`). ``reason``: why it
-    did not pass (None when it passed)."""
+    may not together look off the map, :mod:`service.ml.sequences.off_map`). ``awaits_next``: it
+    passed, but its newest frame's own evidence is below
+    :data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`, so its loop waits for the robot's
+    next frame. ``reason``: why it is not a loop now (None when it passed and does not wait)."""
 
     score: float
     length: int
@@ -38,6 +40,16 @@ class SequenceAnswer:
     margin_min: float = 0.0
     aligned_z: list[float] = field(default_factory=list)
     reason: str | None = None
+    awaits_next: bool = False
+
+
+@dataclass(frozen=True)
+class DeferredLoop:
+    """A loop a robot's frame ``frame_id`` proposed with map frame ``loop_frame_id`` and left
+    to the robot's next frame to confirm (:data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`)."""
+
+    frame_id: int
+    loop_frame_id: int
 
 
 @dataclass
@@ -94,6 +106,10 @@ class QueryResult:
     new_place: bool = True  # status == "new_place", a field of its own
     consistent: int = 0  # consecutive agreeing observations, this one included
     loop_frame_id: int | None = None  # the frame to close the loop with, when status is "loop"
+    # a loop the sequence passed with but left to the robot's next frame (status "candidate")
+    pending_loop_frame_id: int | None = None
+    # the robot's previous frame's pending loop, confirmed by this answer (close it now)
+    confirmed: DeferredLoop | None = None
     sequence: SequenceAnswer | None = None
     query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
     # the search's frames, best first, filter applied: what an observation keeps as the places

@@ -3,9 +3,9 @@
 ``observe`` records one whenever its best candidate is geometrically verified (inliers at or
 above the atlas's minimum; source ``observe``): the new frame and the frame it matched, often
 across a change of condition or robot; and, unless the setting turns it off, whenever it
-answers ``loop`` on its robot's sequence without such a match (source ``sequence``: the new
-frame and the loop's frame), which on low-texture or changed frames is most of the loops it
-closes. Operators label more through the API (and delete wrong ones). A ``query`` keeps no
+answers ``loop`` on its robot's sequence without such a match, or confirms the loop its robot's
+previous frame left pending (source ``sequence``: that frame and the loop's frame), which on
+low-texture or changed frames is most of the loops it closes. Operators label more through the API (and delete wrong ones). A ``query`` keeps no
 frame, so it gives no pair. Pairs are chosen for a job by robot, time and submap
 (:class:`PairFilter`).
 """
@@ -72,18 +72,46 @@ def record_verified(
     enqueue: Callable[[int], None] | None = None,
 ) -> int | None:
     """Keep an observation's closure as a pair (its stored frame ``frame_id`` and the partner
-    :func:`closure_partner` names); queues an adaptation job when the atlas has collected its
-    setting's number of new pairs. Returns the pair's id, None when the answer is no closure."""
+    :func:`closure_partner` names), and the loop of the robot's previous frame that this answer
+    confirmed (source ``sequence``, as it would have been answered at once); queues an
+    adaptation job when the atlas has collected its setting's number of new pairs. Returns the
+    id of the pair of ``frame_id``, None when the answer is no closure."""
+    confirmed = result.confirmed
+    if confirmed is not None and settings.pairs_from_sequence_loops:
+        _keep_pair(
+            sessions,
+            settings,
+            (confirmed.frame_id, confirmed.loop_frame_id, "sequence", None),
+            enqueue,
+        )
     partner = closure_partner(result, from_sequence_loops=settings.pairs_from_sequence_loops)
     if partner is None or partner[0] == frame_id:
         return None
     other_id, source, inliers = partner
+    return _keep_pair(sessions, settings, (frame_id, other_id, source, inliers), enqueue)
+
+
+def _keep_pair(
+    sessions: sessionmaker[Session],
+    settings: Settings,
+    pair_of: tuple[int, int, str, int | None],
+    enqueue: Callable[[int], None] | None,
+) -> int | None:
+    """Store the pair ``(frame, other frame, source, inliers)`` and queue the adaptation it
+    makes due; None when either frame was deleted since the search or the pair is kept
+    already (a pending loop onto the frame its observation verified)."""
+    frame_id, other_id, source, inliers = pair_of
     job_id = None
     with transaction(sessions) as session:
         frame = session.get(Frame, frame_id)
         other = session.get(Frame, other_id)
         if frame is None or other is None or frame.atlas_id != other.atlas_id:
             return None  # deleted since the search
+        kept = select(RevisitPair.id).where(
+            (RevisitPair.frame_id == frame_id) & (RevisitPair.other_frame_id == other_id)
+        )
+        if session.scalar(kept) is not None:
+            return None
         pair = RevisitPair(
             atlas_id=frame.atlas_id,
             frame_id=frame.id,

@@ -1,6 +1,7 @@
 """What the service knows about a robot that asks: who and when it asks, its earlier frames in
 the current sequence, the evidence read for it in the search session, and the verdict judged
-from that evidence (temporal consistency as DBoW2, a passed sequence a loop on its own).
+from that evidence (temporal consistency as DBoW2, a passed sequence a loop on its own, at once
+or, when its newest frame's own evidence is weak, once the robot's next frame confirms it).
 
 Kept apart from the scoring (:mod:`service.app.sequences`) so the decision and the use cases read
 these types without importing the scorer.
@@ -8,11 +9,11 @@ these types without importing the scorer.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from service.app.results import SequenceAnswer
+from service.app.results import DeferredLoop, SequenceAnswer
 from service.ml.sequences import (
     ConsistencySettings,
     Hypothesis,
@@ -44,11 +45,16 @@ class Earlier:
 @dataclass(frozen=True)
 class Verdict:
     """``loop_frame_id``: the frame to close the loop with when ``status`` is a loop (the
-    single-frame match, or the sequence's aligned frame when only the sequence passed)."""
+    single-frame match, or the sequence's aligned frame when only the sequence passed).
+    ``pending_loop_frame_id``: the sequence's aligned frame of a loop left to the robot's next
+    frame (status candidate); ``confirmed``: the robot's previous frame's pending loop, which
+    this frame's loop (answered or pending) confirms as the same place."""
 
     status: PlaceStatus
     consistent: int
     loop_frame_id: int | None = None
+    pending_loop_frame_id: int | None = None
+    confirmed: DeferredLoop | None = None
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,8 @@ class RobotEvidence:
     hit_order: list[int] | None = None
     # cosine of the query with the sequence's aligned frame (None: no sequence)
     sequence_similarity: float | None = None
+    # the loop the robot's previous frame left to this one (None: none waits)
+    previous_pending: DeferredLoop | None = None
 
     def same_place(self, frame_id: int, other_id: int) -> bool | None:
         """Whether two map frames show one place by the consistency's rule (one reference
@@ -76,15 +84,33 @@ class RobotEvidence:
 
     def verdict(self, frame_id: int | None, passed: bool) -> Verdict:
         """The newest single-frame answer (its matched frame and whether it passed) judged with
-        the previous observations; a passed sequence is a loop whatever they say."""
+        the previous observations; a passed sequence is a loop whatever they say, at once or,
+        when it awaits the next frame, as a candidate whose loop is pending. Either kind of loop
+        confirms the previous frame's pending loop when both name one place."""
         at = self.position.get(frame_id, -1) if frame_id is not None else -1
         newest = Hypothesis(at, passed) if at >= 0 else None
         decision = decide([*self.previous, newest], self.trajectories, self.consistency)
+        sequence = self.sequence
         if decision.status == PlaceStatus.LOOP:
-            return Verdict(PlaceStatus.LOOP, decision.consistent, frame_id)
-        if self.sequence is not None and self.sequence.passed:
-            return Verdict(PlaceStatus.LOOP, decision.consistent, self.sequence.frame_id)
-        return Verdict(decision.status, decision.consistent)
+            verdict = Verdict(PlaceStatus.LOOP, decision.consistent, frame_id)
+        elif sequence is not None and sequence.passed and sequence.awaits_next:
+            verdict = Verdict(
+                PlaceStatus.CANDIDATE, decision.consistent, pending_loop_frame_id=sequence.frame_id
+            )
+        elif sequence is not None and sequence.passed:
+            verdict = Verdict(PlaceStatus.LOOP, decision.consistent, sequence.frame_id)
+        else:
+            return Verdict(decision.status, decision.consistent)
+        return replace(verdict, confirmed=self._confirmed(verdict))
+
+    def _confirmed(self, verdict: Verdict) -> DeferredLoop | None:
+        """The previous frame's pending loop when ``verdict``'s loop is the same place."""
+        pending = self.previous_pending
+        loop = verdict.loop_frame_id
+        loop = verdict.pending_loop_frame_id if loop is None else loop
+        if pending is None or loop is None:
+            return None
+        return pending if self.same_place(pending.loop_frame_id, loop) else None
 
 
 def single_frame_verdict(frame_id: int | None, passed: bool) -> Verdict:

@@ -8,7 +8,8 @@ the robot's loops of its last few frames faster than the sequence's speeds carry
 map (:func:`service.ml.sequences.off_map.left_the_map`), and a place that continues the robot's
 newest loop needs only the tracking margin (:func:`recent_loops`,
 :func:`service.ml.sequences.margin_needed`). What fails is said in an operator's words
-(:func:`sequence_shortfalls`).
+(:func:`sequence_shortfalls`). A sequence that passes while its newest frame's own evidence is
+weak waits for the robot's next frame (:func:`awaits_next_frame`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from service.app.sequence_map import SequenceMap
 from service.ml.sequences import SequenceSettings, Trajectories, runs_ahead
 from service.ml.sequences.distinctiveness import (
+    CONFIRM_Z,
     NEWEST_Z_MIN,
     RUN_AHEAD_SLACK,
     TRACKING_DROPOUT,
@@ -118,3 +120,15 @@ def sequence_shortfalls(
             "(it may have left the mapped route)"
         )
     return out
+
+
+def awaits_next_frame(newest_z: float) -> str | None:
+    """Why a passed sequence's loop waits for the robot's next frame to confirm it (its newest
+    frame's own evidence is below :data:`CONFIRM_Z`), in an operator's words; None when the
+    loop is answered at once."""
+    if newest_z >= CONFIRM_Z:
+        return None
+    return (
+        f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {CONFIRM_Z:g}: the loop "
+        "waits for the robot's next frame to confirm the place"
+    )

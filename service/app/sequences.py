@@ -28,10 +28,16 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from service.app.filters import Selection
-from service.app.results import SequenceAnswer
+from service.app.results import DeferredLoop, SequenceAnswer
 from service.app.robot_evidence import Earlier, RobotContext, RobotEvidence
 from service.app.sequence_map import SequenceMap, SequenceMaps
-from service.app.sequence_rules import TrackedLoop, ran_ahead, recent_loops, sequence_shortfalls
+from service.app.sequence_rules import (
+    TrackedLoop,
+    awaits_next_frame,
+    ran_ahead,
+    recent_loops,
+    sequence_shortfalls,
+)
 from service.app.state import LoadedAtlas
 from service.app.stay import RobotFrames, frame_stay, stay_rule
 from service.config import Settings
@@ -76,6 +82,17 @@ def query_sequence(
     starts = sequence_starts(times, max_gap_seconds=max_gap)
     first = int(np.flatnonzero(starts)[-1])
     return [frame_id for frame_id, _ in recent[first:]]
+
+
+def previous_pending(previous: Sequence[int], kept: dict[int, repo.Kept]) -> DeferredLoop | None:
+    """The loop the robot's previous frame of this sequence left to its next frame (None:
+    none waits, or the robot starts a new sequence)."""
+    if not previous or previous[-1] not in kept:
+        return None
+    last = kept[previous[-1]]
+    if not last.loop_pending or last.loop_frame_id is None:
+        return None
+    return DeferredLoop(previous[-1], last.loop_frame_id)
 
 
 def contrast_order(
@@ -169,6 +186,7 @@ class SequenceScorer:
                 self.consistency,
                 contrast_order(view, contrasted[0], hits),
                 _similarity(view, newest, sequence.frame_id) if sequence is not None else None,
+                previous_pending(previous, kept),
             )
 
     def _stays(
@@ -272,6 +290,7 @@ class SequenceScorer:
             ran_ahead(view.trajectories, best.reference, loops, settings),
             left_the_map(best.aligned_z, best.aligned),
         )
+        waits = None if shortfalls else awaits_next_frame(best.newest_z)
         return SequenceAnswer(
             score=round(float(best.score), 6),
             length=best.length,
@@ -284,7 +303,8 @@ class SequenceScorer:
             margin_min=needed,
             aligned_z=[round(z, 3) for z in best.aligned_z],
             passed=not shortfalls,
-            reason="; ".join(shortfalls) or None,
+            reason="; ".join(shortfalls) or waits,
+            awaits_next=waits is not None,
         )
 
     def _contrasted(

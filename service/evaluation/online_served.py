@@ -9,7 +9,8 @@ A frame whose insert makes the atlas reach a milestone queues a calibration job
 with the job runner's own code (:func:`service.evaluation.served_jobs.run_job_now`), as a
 worker would between two frames, and the next frame is answered by the calibrated model
 version. The row's PR sweep runs over ``loop_probability`` (what the service thresholds) and
-its operating point is the service's own ``status == "loop"``.
+its operating point is the service's own ``status == "loop"`` (a frame whose loop the next frame
+confirmed counts as one).
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ from service.evaluation.online_service import frame_times, observe_frame, replay
 from service.evaluation.served_jobs import JobRun, queued_jobs, run_queued
 from service.evaluation.served_pass import PARTS, decision_parts, loop_counts
 from service.evaluation.served_sweep import (
+    SEQUENCE_LOOP_LOGIT,
     answered_frames,
+    confirms_previous,
     decision_logit,
     loop_probability,
     swept_logit,
@@ -79,6 +82,7 @@ def served_replay(
     times = frame_times(trajectory, count)
     dim = pipeline.local.descriptor_dim
     index_of: dict[int, int] = {}
+    frame_of: list[int] = []  # stored frame ids, in order
     out = ServedReplay()
     with (
         replay_atlas(
@@ -106,6 +110,9 @@ def served_replay(
                 length=length,
                 exclude_recent=exclude_recent,
             )
+            if t and confirms_previous(answer, frame_of[-1]):  # the previous frame's loop
+                out.closable_logits[-1], out.status[-1] = SEQUENCE_LOOP_LOGIT, "loop"
+            frame_of.append(frame_id)
             index_of[frame_id] = t
             first = answered_frames(answer)
             out.references.append(index_of.get(first[0], -1) if first else -1)

@@ -32,7 +32,12 @@ from service.evaluation.datasets import Dataset
 from service.evaluation.metrics import Ranking, correct_matrix, precision_recall
 from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.evaluation.served_jobs import JobRun, queued_jobs, run_queued
-from service.evaluation.served_sweep import answered_frames, swept_probability, swept_score
+from service.evaluation.served_sweep import (
+    answered_frames,
+    confirms_previous,
+    swept_probability,
+    swept_score,
+)
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.storage import repository as repo
 
@@ -145,13 +150,16 @@ def served_answers(
     """
     if sequence_length:
         service.create_submap(atlas, QUERY_SUBMAP)
-    indices, scores, status, parts, query_ms, alone = [], [], [], [], [], []
+    indices, parts, query_ms, alone = [], [], [], []
+    scores: list[list[float]] = []
+    status: list[str] = []
     closable: list[bool] = []
     candidates: list[list[list[float]]] = []
     sequences: list[list[float]] = []
     sequence_z: list[list[float]] = []
     ran: list[JobRun] = []
     adapting = adapt_after_pairs if sequence_length else 0
+    stored: int | None = None  # the robot's previous frame (observations)
     with served_settings(service, extractor) as settings, queued_jobs(service, adapting) as queued:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
@@ -159,7 +167,7 @@ def served_answers(
             start = time.perf_counter()
             if sequence_length:
                 fields = FrameFields(QUERY_SUBMAP, QUERY_ROBOT, timestamp=float(i))
-                answer, _ = service.observe_features(
+                answer, frame = service.observe_features(
                     atlas_name=atlas,
                     fields=fields,
                     features=features,
@@ -169,6 +177,10 @@ def served_answers(
                     ),
                     sequence_length=sequence_length,
                 )
+                if confirms_previous(answer, stored):  # the previous frame's loop, one frame late
+                    scores[-1] = [x - scores[-1][0] + 1.0 for x in scores[-1]]  # p -> 1.0
+                    closable[-1], status[-1] = True, "loop"
+                stored = frame.id
             else:
                 answer = service.query_features(
                     atlas_name=atlas, features=features, k=k, query_filter=query_filter

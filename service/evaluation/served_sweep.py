@@ -5,7 +5,9 @@ impostors) and its ``loop_probability`` reaches the threshold, or when a robot's
 passes on its own evidence, whatever the threshold. The harness's served rows
 (:mod:`service.evaluation.served_pass`) and ``eval-online``'s served replay
 (:mod:`service.evaluation.online_served`) sweep the same way: closable answers from their
-probability (or logit) up, sequence loops at every threshold, the others never.
+probability (or logit) up, sequence loops at every threshold, the others never. A sequence
+loop left to the robot's next frame (``awaits_next``) counts for its own frame once the next
+answer confirms it (:func:`confirms_previous`), as a back end closes it then.
 """
 
 from __future__ import annotations
@@ -21,12 +23,15 @@ SEQUENCE_LOOP_LOGIT = 1000.0
 
 
 def answered_frames(answer: QueryResult) -> list[int]:
-    """The frames an answer names, the one to act on first: the loop's frame; else the match
+    """The frames an answer names, the one to act on first: the loop's frame (answered or
+    pending); else the match
     when the decision could close it (the swept probability is the match's: a lower threshold
     makes it the loop); else the robot's sequence's aligned frame, else the match; then the
     other candidates."""
     ids = [c.frame_id for c in answer.candidates]
     first = answer.loop_frame_id
+    if first is None:
+        first = answer.pending_loop_frame_id
     decision = answer.decision
     if first is None and answer.match is not None and decision is not None and decision.closable:
         first = answer.match.frame_id
@@ -55,9 +60,18 @@ def swept_score(answer: QueryResult) -> tuple[float, bool]:
 
 
 def closed_by_sequence(answer: QueryResult) -> bool:
-    """A loop on the robot's sequence's own evidence: the service closes it whatever
-    ``LOOPNET_LOOP_PROBABILITY_MIN`` says."""
-    return answer.sequence is not None and answer.sequence.passed
+    """A loop on the robot's sequence's own evidence, answered at once: the service closes it
+    whatever ``LOOPNET_LOOP_PROBABILITY_MIN`` says. One that awaits the next frame is not (yet)."""
+    sequence = answer.sequence
+    return sequence is not None and sequence.passed and not sequence.awaits_next
+
+
+def confirms_previous(answer: QueryResult, previous_frame_id: int | None) -> bool:
+    """Whether ``answer`` confirms the pending loop of the robot's frame stored just before
+    (``previous_frame_id``): that frame's answer then counts as a loop on the sequence's
+    evidence."""
+    confirmed = answer.confirmed
+    return confirmed is not None and confirmed.frame_id == previous_frame_id
 
 
 def swept_logit(answer: QueryResult) -> float:

@@ -18,6 +18,7 @@ from sqlalchemy import (
     String,
     TypeDecorator,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
@@ -264,7 +265,8 @@ class FrameProposals(Base):
     (stored by ``POST /frames``, or restored from a snapshot) is searched again instead.
     ``loop_frame_id``: the frame its observation closed a loop with (None: no loop), which the
     robot's next observation may continue (loop tracking); a plain id, the frame may have been
-    deleted since."""
+    deleted since. ``loop_pending``: that loop was not answered yet, it waits for the robot's
+    next observation to confirm it (service.ml.sequences.distinctiveness.CONFIRM_Z)."""
 
     __tablename__ = "frame_proposals"
 
@@ -273,6 +275,7 @@ class FrameProposals(Base):
     )
     frame_ids: Mapped[bytes] = mapped_column(LargeBinary)
     loop_frame_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    loop_pending: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
 
 
 class LoopClosureThumbnail(Base):

@@ -119,12 +119,14 @@ def add_frame(
     features: FrameFeatures,
     proposals: Sequence[int] | None = None,
     loop_frame_id: int | None = None,
+    loop_pending: bool = False,
 ) -> Frame:
     """Insert a frame and its features in the caller's transaction; returns it with its id.
 
     ``proposals``: the frames the frame's own search returned, best first (an observation's),
     kept for sequence scoring (:class:`~service.storage.models.FrameProposals`), with the frame
-    its observation closed a loop with (``loop_frame_id``)."""
+    its observation closed a loop with (``loop_frame_id``; ``loop_pending``: a loop left to the
+    robot's next frame to confirm)."""
     width, height = features.image_size
     frame = Frame(
         atlas_id=atlas.id,
@@ -149,7 +151,12 @@ def add_frame(
     if proposals is not None:
         ids = np.asarray(proposals, dtype="<i4")
         session.add(
-            FrameProposals(frame_id=frame.id, frame_ids=ids.tobytes(), loop_frame_id=loop_frame_id)
+            FrameProposals(
+                frame_id=frame.id,
+                frame_ids=ids.tobytes(),
+                loop_frame_id=loop_frame_id,
+                loop_pending=loop_pending,
+            )
         )
     session.flush()
     return frame
@@ -157,10 +164,12 @@ def add_frame(
 
 class Kept(NamedTuple):
     """What an observed frame's observation kept: its search's proposals (int64 frame ids,
-    best first) and the frame it closed a loop with (None: no loop)."""
+    best first), the frame it closed a loop with (None: no loop) and whether that loop waits
+    for the robot's next frame to confirm it."""
 
     proposals: np.ndarray
     loop_frame_id: int | None
+    loop_pending: bool = False
 
 
 def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, Kept]:
@@ -169,12 +178,15 @@ def frame_proposals(session: Session, *, frame_ids: Sequence[int]) -> dict[int, 
         return {}
     rows = session.execute(
         select(
-            FrameProposals.frame_id, FrameProposals.frame_ids, FrameProposals.loop_frame_id
+            FrameProposals.frame_id,
+            FrameProposals.frame_ids,
+            FrameProposals.loop_frame_id,
+            FrameProposals.loop_pending,
         ).where(FrameProposals.frame_id.in_(list(frame_ids)))
     )
     return {
-        int(i): Kept(np.frombuffer(blob, dtype="<i4").astype(np.int64), loop)
-        for i, blob, loop in rows
+        int(i): Kept(np.frombuffer(blob, dtype="<i4").astype(np.int64), loop, bool(pending))
+        for i, blob, loop, pending in rows
     }
 
 

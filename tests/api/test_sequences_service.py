@@ -19,11 +19,12 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from service.app.ingest import FrameFields
-from service.app.results import QueryResult
+from service.app.results import DeferredLoop, QueryResult
 from service.features_payload import encode_features
 from service.ml.features import FrameFeatures, LocalFeatures
 from service.ml.sequences import TRACKING_DROPOUT
-from service.storage.models import FrameProposals
+from service.ml.sequences.distinctiveness import CONFIRM_Z, NEWEST_Z_MIN
+from service.storage.models import FrameProposals, RevisitPair
 from tests.conftest import make_settings, wait_ready
 
 PLACES = 40
@@ -432,6 +433,72 @@ def test_a_robot_whose_newest_frames_look_off_the_map_is_not_carried_along_it(
         f"its last 2 frames favour the place by a mean aligned_z of {sum(newest) / 2:.2f}, "
         "below the 0.75 of a robot on the map (it may have left the mapped route)"
     )
+
+
+def pairs_of(client: TestClient, frame_id: int) -> list[tuple[int, str]]:
+    """The revisit pairs kept for ``frame_id``: (the other frame, source)."""
+    service = client.app.state.runtime.service  # type: ignore[attr-defined]
+    with service.sessions() as session:
+        rows = session.execute(
+            select(RevisitPair.other_frame_id, RevisitPair.source).where(
+                RevisitPair.frame_id == frame_id
+            )
+        )
+        return [(int(other), str(source)) for other, source in rows]
+
+
+def observe_stored(client: TestClient, frame: FrameFeatures, t: float) -> tuple[QueryResult, int]:
+    """:func:`observe` with a sequence of 5, and the id of the frame it stored."""
+    service = client.app.state.runtime.service  # type: ignore[attr-defined]
+    result, stored = service.observe_features(
+        atlas_name="campus",
+        fields=FrameFields("s0", "rover", timestamp=t),
+        features=frame,
+        query_filter=service.query_filter(robot_id="rover", timestamp=t),
+        sequence_length=5,
+    )
+    return result, int(stored.id)
+
+
+@pytest.mark.parametrize("next_place", [26, None], ids=["back-on-the-route", "off-the-map"])
+def test_a_loop_whose_newest_frame_is_weak_waits_for_the_next_frame(
+    data_dir: Path, pipeline, next_place: int | None
+) -> None:  # type: ignore[no-untyped-def]
+    """The drive past decoys closes its loop at place 24; the rover's next frame shows place 25
+    only faintly (its own aligned_z between NEWEST_Z_MIN and CONFIRM_Z): the sequence passes on
+    the frames behind it, but the answer is a ``candidate`` whose loop is pending, as the first
+    frame of a robot leaving the route would be. The frame after it decides: on the route
+    (place 26) its loop is the same place and its answer confirms the pending one (the revisit
+    pair is kept then); off the map it closes nothing, and the pending loop is never answered
+    nor kept as a pair."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, answers = map_then_rover_past_decoys(client, pipeline)
+        assert (answers[-1].status, answers[-1].loop_frame_id) == ("loop", ids[24])
+        weak, weak_id = observe_stored(client, off_the_map(25, 0.8), 105.0)
+        after = features(G[next_place]) if next_place is not None else off_the_map(26, 0.1)
+        decided, decided_id = observe_stored(client, after, 106.0)
+        pairs = pairs_of(client, weak_id), pairs_of(client, decided_id)
+    sequence = weak.sequence
+    assert sequence is not None and sequence.passed and sequence.awaits_next
+    assert NEWEST_Z_MIN <= sequence.aligned_z[-1] < CONFIRM_Z
+    assert (weak.status, weak.loop_frame_id, weak.pending_loop_frame_id) == (
+        "candidate",
+        None,
+        ids[25],
+    )
+    assert sequence.reason == (
+        f"this frame's own evidence (aligned_z {sequence.aligned_z[-1]:.2f}) is below 3: the "
+        "loop waits for the robot's next frame to confirm the place"
+    )
+    if next_place is None:
+        assert decided.status != "loop" and decided.confirmed is None
+        assert pairs == ([], [])
+        return
+    assert (decided.status, decided.loop_frame_id) == ("loop", ids[26])
+    assert decided.confirmed == DeferredLoop(weak_id, ids[25])
+    assert pairs == ([(ids[25], "sequence")], [(ids[26], "sequence")])
 
 
 @pytest.mark.parametrize("dropped", [1, 2])

@@ -6,13 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service.app.results import Candidate, QueryResult, SequenceAnswer, SubmapGuess
+from service.app.results import Candidate, DeferredLoop, QueryResult, SequenceAnswer, SubmapGuess
 from service.evaluation.dataset_model import Dataset, QueryFrame, ReferenceFrame
 from service.evaluation.metrics import Ranking
 from service.evaluation.protocol import evaluate_ranking
 from service.evaluation.served_sweep import (
     SEQUENCE_LOOP_LOGIT,
     answered_frames,
+    confirms_previous,
     swept_logit,
     swept_score,
 )
@@ -70,3 +71,20 @@ def test_a_loop_on_the_sequences_evidence_is_swept_as_one_at_every_threshold() -
     passed = answer(closable=False, loop_frame=30, sequence_passed=True)
     assert swept_logit(passed) == SEQUENCE_LOOP_LOGIT
     assert swept_logit(answer(closable=False)) == float("-inf")
+
+
+def test_a_pending_loop_is_swept_only_once_the_next_answer_confirms_it() -> None:
+    """A sequence loop left to the robot's next frame is not a loop at every threshold on its
+    own answer (which names the pending frame first); the next answer's confirmation of that
+    frame is what the served rows count, one frame late."""
+    pending = answer(closable=False, sequence_passed=True)
+    assert pending.sequence is not None
+    pending.sequence.awaits_next = True
+    pending.pending_loop_frame_id = 30
+    assert swept_score(pending) == (0.0, False)
+    assert swept_logit(pending) == float("-inf")
+    assert answered_frames(pending)[0] == 30
+    later = answer(closable=False, loop_frame=31, sequence_passed=True)
+    later.confirmed = DeferredLoop(frame_id=55, loop_frame_id=30)
+    assert confirms_previous(later, 55) and not confirms_previous(later, 54)
+    assert not confirms_previous(pending, 55)

@@ -192,6 +192,46 @@ def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
     assert evidence.same_place(104, 999) is None  # not held by the map
 
 
+def test_a_weak_newest_frame_leaves_its_sequences_loop_to_the_next_frame() -> None:
+    """A passed sequence that awaits the next frame is a candidate with its loop pending, not a
+    loop; a consistent single-frame loop is not deferred. The robot's next loop, answered or
+    pending, confirms the previous frame's pending loop when both name one place (the
+    consistency's step), and only then."""
+    from service.app.results import DeferredLoop, SequenceAnswer
+    from service.app.robot_evidence import RobotEvidence
+    from service.ml.sequences import ConsistencySettings, Hypothesis, PlaceStatus, Trajectories
+
+    trajectories = Trajectories.build(["r"] * 20)
+    position = {100 + i: i for i in range(20)}
+    settings = ConsistencySettings(required=2, max_step=3)
+
+    def evidence(
+        place: int | None, awaits: bool, pending: DeferredLoop | None = None, previous=None
+    ) -> RobotEvidence:  # type: ignore[no-untyped-def]
+        sequence = None
+        if place is not None:
+            sequence = SequenceAnswer(9.0, 5, [], 1.0, place, 5.0, None, True, awaits_next=awaits)
+        return RobotEvidence(
+            sequence, previous or [None], position, trajectories, settings, previous_pending=pending
+        )
+
+    waiting = evidence(105, awaits=True).verdict(None, False)
+    assert (waiting.status, waiting.loop_frame_id, waiting.pending_loop_frame_id) == (
+        PlaceStatus.CANDIDATE,
+        None,
+        105,
+    )
+    assert evidence(105, awaits=False).verdict(None, False).loop_frame_id == 105
+    consistent = evidence(105, awaits=True, previous=[Hypothesis(4, True)]).verdict(104, True)
+    assert (consistent.status, consistent.loop_frame_id) == (PlaceStatus.LOOP, 104)
+
+    pending = DeferredLoop(frame_id=7, loop_frame_id=105)
+    assert evidence(106, awaits=False, pending=pending).verdict(None, False).confirmed == pending
+    assert evidence(106, awaits=True, pending=pending).verdict(None, False).confirmed == pending
+    assert evidence(112, awaits=False, pending=pending).verdict(None, False).confirmed is None
+    assert evidence(None, awaits=False, pending=pending).verdict(None, False).confirmed is None
+
+
 def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:
     """Below the sequence part's centre a sequence argues for no place, so the answer stays
     with the best single frame; an uninformative sequence (no rival place) names none."""

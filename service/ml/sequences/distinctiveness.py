@@ -57,6 +57,16 @@ def distinctiveness(
     return Distinctiveness(best.score, None)
 
 
+# A loop a passed sequence carries while its newest frame's own evidence is below this
+# (aligned_z, standard deviations) is not answered at once: it waits for the robot's next frame,
+# whose loop must be the same place (the consistency's rule), and is confirmed in that frame's
+# answer. A robot's first frame off the mapped route still drags a tail of frames that align
+# along it, and its own evidence is then weak but not absent; no test of its own frames can tell
+# it from a bland stretch of the route, but its next frame can. On the off-route proxy
+# (Nordland, ten detours) the first half's two false loops had newest aligned_z 1.6 and 2.6, and
+# 3 is the least that refuses both; it cost 1.3% of that half's right loops (benchmarks/RESULTS.md,
+# issue 25, stop 46).
+CONFIRM_Z = 3.0
 # How far along its trajectory a sequence's place must lie past the place the robot's previous
 # observation closed a loop with, to continue that loop: exactly one frame. The sequence model
 # aligns one map frame per query frame at every speed it tries (SequenceSettings.speeds

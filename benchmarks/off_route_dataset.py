@@ -6,6 +6,11 @@ decision does there.
         --detours --stretches 10 --length 40
     loopnet eval /work/tmp/nord_detours --layout vpr-bench --tolerance 1 --sequence 10 ...
 
+A short drive works the same way with fewer, shorter detours (stop 46's second proxy):
+
+    python benchmarks/off_route_dataset.py ../shared/data/gardenspoint_cohog200 \
+        /work/tmp/cohog_detours --detours --stretches 4 --length 10 --tolerance 2
+
 Two constructions:
 
 - ``--detours`` (the faithful one): the map is the route without its last ``stretches x length``

@@ -11,7 +11,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings
 
 from service.ml.decision import DEFAULT_RIVAL_GAP
-from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
+from service.ml.sequences.distinctiveness import CONFIRM_Z, TRACKING_DROPOUT
 from service.ml.viewpoint import DEFAULT_SCALE_TOLERANCE
 
 
@@ -276,6 +276,16 @@ class SequenceSettings(BaseSettings):
         "window (-1..3 frames) let tracking close on the first half of Nordland's queries "
         "(margins 2.16-2.33); continuing by one frame, "
         "none down to 1.5 added one (benchmarks/decision_headroom.py). Unset: no tracking.",
+    )
+    sequence_confirm_z: float = Field(
+        CONFIRM_Z,
+        ge=0.0,
+        description="A loop a robot's passed sequence carries while the newest frame's own "
+        "evidence (its aligned_z) is below this is not answered at once: the answer is a "
+        "candidate with pending_loop_frame_id, and the robot's next observation confirms it "
+        "(its answer's confirmed) when its own loop is the same place. A robot's first frame "
+        "off the mapped route looks like that; the price is one frame of latency on weak loops "
+        "(benchmarks/RESULTS.md, issue 25, stop 46). 0: every passed sequence is answered at once.",
     )
     consistency_frames: int = Field(
         3,

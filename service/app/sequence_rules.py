@@ -122,13 +122,13 @@ def sequence_shortfalls(
     return out
 
 
-def awaits_next_frame(newest_z: float) -> str | None:
+def awaits_next_frame(newest_z: float, threshold: float = CONFIRM_Z) -> str | None:
     """Why a passed sequence's loop waits for the robot's next frame to confirm it (its newest
-    frame's own evidence is below :data:`CONFIRM_Z`), in an operator's words; None when the
-    loop is answered at once."""
-    if newest_z >= CONFIRM_Z:
+    frame's own evidence is below ``threshold``, ``sequence_confirm_z``, by default
+    :data:`CONFIRM_Z`), in an operator's words; None when the loop is answered at once."""
+    if newest_z >= threshold:
         return None
     return (
-        f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {CONFIRM_Z:g}: the loop "
+        f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {threshold:g}: the loop "
         "waits for the robot's next frame to confirm the place"
     )

@@ -290,7 +290,11 @@ class SequenceScorer:
             ran_ahead(view.trajectories, best.reference, loops, settings),
             left_the_map(best.aligned_z, best.aligned),
         )
-        waits = None if shortfalls else awaits_next_frame(best.newest_z)
+        waits = (
+            None
+            if shortfalls
+            else awaits_next_frame(best.newest_z, self.settings.sequence_confirm_z)
+        )
         return SequenceAnswer(
             score=round(float(best.score), 6),
             length=best.length,

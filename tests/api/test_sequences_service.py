@@ -501,6 +501,23 @@ def test_a_loop_whose_newest_frame_is_weak_waits_for_the_next_frame(
     assert pairs == ([(ids[25], "sequence")], [(ids[26], "sequence")])
 
 
+def test_with_confirmation_off_a_weak_loop_is_answered_at_once(data_dir: Path, pipeline) -> None:  # type: ignore[no-untyped-def]
+    """``sequence_confirm_z`` 0 (a deployment that cannot take a frame of latency): the same
+    faint frame's passed sequence is a loop in its own answer, and nothing waits."""
+    with make_client(
+        data_dir,
+        pipeline,
+        sequence_margin_min=3.0,
+        trajectory_contrast_frames=0,
+        sequence_confirm_z=0.0,
+    ) as client:
+        map_then_rover_past_decoys(client, pipeline)
+        weak, _ = observe_stored(client, off_the_map(25, 0.8), 105.0)
+    assert weak.sequence is not None and weak.sequence.aligned_z[-1] < CONFIRM_Z
+    assert weak.status == "loop" and weak.pending_loop_frame_id is None
+    assert not weak.sequence.awaits_next and weak.sequence.reason is None
+
+
 @pytest.mark.parametrize("dropped", [1, 2])
 def test_a_track_lost_for_a_frame_or_two_is_picked_up_again(
     data_dir: Path, pipeline, dropped: int

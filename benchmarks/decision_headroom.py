@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from served_report import loop_frames, sequence_loops, served_rows  # a sibling script
 
 from service.app import sequence_rules
 from service.app.sequence_rules import TrackedLoop
@@ -88,13 +89,6 @@ class Tracking:
     false_examples: list[tuple[int, int, float]]  # (query, reference, margin)
 
 
-def served_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
-    rows = [m for m in report["methods"] if "-served" in m["name"]]
-    if not rows:
-        raise SystemExit("no served row in the report (run loopnet eval without --no-served)")
-    return rows
-
-
 def ceiling(row: dict[str, Any]) -> Ceiling:
     """The closable ceiling of one served row."""
     details = row["details"]
@@ -115,28 +109,6 @@ def ceiling(row: dict[str, Any]) -> Ceiling:
         if len(left_out)
         else math.nan,
     )
-
-
-def loop_frames(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Per query: whether it was answered ``loop`` and the reference of its loop (the
-    sequence's place when the sequence passed, else the served match; -1 for no loop)."""
-    sequences = np.array(details["per_query_sequence"], float)
-    loop = np.array([s == "loop" for s in details["per_query_status"]])
-    frames = np.full(len(loop), -1, np.int64)
-    for i in np.flatnonzero(loop):
-        if sequences[i, 3] == 1:
-            frames[i] = int(sequences[i, 0])
-        elif details["per_query_candidates"][i]:
-            frames[i] = int(details["per_query_candidates"][i][0][0])
-    return loop, frames
-
-
-def sequence_loops(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """The queries answered ``loop`` by a passed sequence (indices, in order), and every
-    query's rightness as the report scored it."""
-    sequences = np.array(details["per_query_sequence"], float)
-    loop, _ = loop_frames(details)
-    return np.flatnonzero(loop & (sequences[:, 3] == 1)), np.array(details["per_query_right"], bool)
 
 
 def tracking(

@@ -23,8 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from decision_headroom import loop_frames  # the sibling script (its folder is on the path)
-from off_map_guard import robot_row
+from served_report import loop_frames, robot_row  # a sibling script (its folder is on the path)
 
 from service.ml.sequences import ConsistencySettings
 

@@ -21,7 +21,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from decision_headroom import sequence_loops
+from served_report import robot_row, sequence_loops  # a sibling script
 
 from service.ml.sequences import off_map
 
@@ -31,14 +31,6 @@ GRID = [
     for slack in (0.5, 1.0, 1.5, 2.0)
     for frames in (3, 4)
 ]
-
-
-def robot_row(report: dict[str, Any]) -> dict[str, Any]:
-    """The served row with sequences (a robot observing: ``-served+seq``)."""
-    for method in report["methods"]:
-        if "-served+seq" in method["name"] and method["details"].get("per_query_sequence_z"):
-            return method  # type: ignore[no-any-return]
-    raise SystemExit("no served sequence row with per_query_sequence_z in the report")
 
 
 def screen(details: dict[str, Any], z: float, slack: float, frames: int) -> dict[str, Any]:

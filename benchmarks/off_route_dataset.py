@@ -36,7 +36,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from decision_headroom import loop_frames  # the sibling script (its folder is on the path)
+from served_report import loop_frames  # a sibling script (its folder is on the path)
 
 from service.evaluation.dataset_layouts import VPR_BENCH_GT, read_traversals
 from service.ml.sequences.distinctiveness import NEWEST_Z_MIN

@@ -204,8 +204,8 @@ class SequenceOut(BaseModel):
         False,
         description="The sequence passed, but this frame's own evidence (the last aligned_z) is "
         f"below LOOPNET_SEQUENCE_CONFIRM_Z ({CONFIRM_Z:g} by default): a robot's first frame "
-        "off the mapped route still aligns along it "
-        "by the frames behind it. The loop is not answered now (status 'candidate', "
+        "off the mapped route still aligns along it by the frames behind it. The loop is not "
+        "answered now (status 'candidate', "
         "pending_loop_frame_id); the robot's next observation confirms it (its answer's "
         "'confirmed') when its own loop is the same place.",
     )

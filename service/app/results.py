@@ -46,7 +46,7 @@ class SequenceAnswer:
 @dataclass(frozen=True)
 class DeferredLoop:
     """A loop a robot's frame ``frame_id`` proposed with map frame ``loop_frame_id`` and left
-    to the robot's next frame to confirm (:data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`)."""
+    to the robot's next frame to confirm (the setting ``sequence_confirm_z``)."""
 
     frame_id: int
     loop_frame_id: int

@@ -22,7 +22,6 @@ import numpy as np
 from service.app.sequence_map import SequenceMap
 from service.ml.sequences import SequenceSettings, Trajectories, runs_ahead
 from service.ml.sequences.distinctiveness import (
-    CONFIRM_Z,
     NEWEST_Z_MIN,
     RUN_AHEAD_SLACK,
     TRACKING_DROPOUT,
@@ -122,10 +121,10 @@ def sequence_shortfalls(
     return out
 
 
-def awaits_next_frame(newest_z: float, threshold: float = CONFIRM_Z) -> str | None:
+def awaits_next_frame(newest_z: float, threshold: float) -> str | None:
     """Why a passed sequence's loop waits for the robot's next frame to confirm it (its newest
-    frame's own evidence is below ``threshold``, ``sequence_confirm_z``, by default
-    :data:`CONFIRM_Z`), in an operator's words; None when the loop is answered at once."""
+    frame's own evidence is below ``threshold``, the setting ``sequence_confirm_z``), in an
+    operator's words; None when the loop is answered at once."""
     if newest_z >= threshold:
         return None
     return (

@@ -24,10 +24,9 @@ SEQUENCE_LOOP_LOGIT = 1000.0
 
 def answered_frames(answer: QueryResult) -> list[int]:
     """The frames an answer names, the one to act on first: the loop's frame (answered or
-    pending); else the match
-    when the decision could close it (the swept probability is the match's: a lower threshold
-    makes it the loop); else the robot's sequence's aligned frame, else the match; then the
-    other candidates."""
+    pending); else the match when the decision could close it (the swept probability is the
+    match's: a lower threshold makes it the loop); else the robot's sequence's aligned frame,
+    else the match; then the other candidates."""
     ids = [c.frame_id for c in answer.candidates]
     first = answer.loop_frame_id
     if first is None:

@@ -64,8 +64,8 @@ def distinctiveness(
 # along it, and its own evidence is then weak but not absent; no test of its own frames can tell
 # it from a bland stretch of the route, but its next frame can. On the off-route proxy
 # (Nordland, ten detours) the first half's two false loops had newest aligned_z 1.6 and 2.6, and
-# 3 is the least that refuses both; it cost 1.3% of that half's right loops (benchmarks/RESULTS.md,
-# issue 25, stop 46).
+# 3 is the least that refuses both; it cost 1.1% of that half's right loops (benchmarks/RESULTS.md,
+# issue 25, stop 46). The default of the setting sequence_confirm_z.
 CONFIRM_Z = 3.0
 # How far along its trajectory a sequence's place must lie past the place the robot's previous
 # observation closed a loop with, to continue that loop: exactly one frame. The sequence model

@@ -282,10 +282,12 @@ class SequenceSettings(BaseSettings):
         ge=0.0,
         description="A loop a robot's passed sequence carries while the newest frame's own "
         "evidence (its aligned_z) is below this is not answered at once: the answer is a "
-        "candidate with pending_loop_frame_id, and the robot's next observation confirms it "
-        "(its answer's confirmed) when its own loop is the same place. A robot's first frame "
-        "off the mapped route looks like that; the price is one frame of latency on weak loops "
-        "(benchmarks/RESULTS.md, issue 25, stop 46). 0: every passed sequence is answered at once.",
+        "candidate with pending_loop_frame_id, and a later observation of the robot confirms it "
+        "(its answer's confirmed) when its own loop is answered at once and the same place, "
+        "with every frame between pending on that place too. A robot's first frames off the "
+        "mapped route look like that; the price is a frame or more of latency on weak loops "
+        "(benchmarks/RESULTS.md, issue 25, stops 46-47). 0: every passed sequence is answered "
+        "at once.",
     )
     consistency_frames: int = Field(
         3,

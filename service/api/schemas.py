@@ -206,8 +206,9 @@ class SequenceOut(BaseModel):
         f"below LOOPNET_SEQUENCE_CONFIRM_Z ({CONFIRM_Z:g} by default): a robot's first frame "
         "off the mapped route still aligns along it by the frames behind it. The loop is not "
         "answered now (status 'candidate', "
-        "pending_loop_frame_id); the robot's next observation confirms it (its answer's "
-        "'confirmed') when its own loop is the same place.",
+        "pending_loop_frame_id). A later observation of the robot whose loop is answered at "
+        "once confirms it (in its answer's 'confirmed') when the robot's frames between wait "
+        "on loops of the same place too; weak frames never confirm each other alone.",
     )
     contrast_frames: int = Field(
         0,
@@ -311,16 +312,18 @@ class QueryOut(BaseModel):
     )
     pending_loop_frame_id: int | None = Field(
         None,
-        description="The frame a passed sequence would close the loop with, left to the robot's "
-        "next observation to confirm (sequence.awaits_next; status 'candidate'): do not close it "
-        "yet. Null otherwise.",
+        description="The frame a passed sequence would close the loop with, left to a later "
+        "observation of the robot to confirm (sequence.awaits_next; status 'candidate'): do not "
+        "close it yet. Null otherwise.",
     )
-    confirmed: DeferredLoopOut | None = Field(
-        None,
-        description="The loop the robot's previous observation left pending, confirmed by this "
-        "one (its loop, answered or pending, is the same place): close it now, between that "
-        "frame and loop_frame_id. Null when none was pending or this frame does not confirm it "
-        "(the pending loop is then dropped).",
+    confirmed: list[DeferredLoopOut] = Field(
+        default_factory=list,
+        description="The loops the robot's observations just before this one left pending, "
+        "oldest first, that this one confirms: its loop is answered at once (status 'loop') and "
+        "each names the same place as the loop after it. Close each now, between its frame and "
+        "its loop_frame_id. Empty when none waits, or when this observation does not confirm "
+        "them: a pending loop followed by an answer that is neither the same place's loop nor "
+        "pending is dropped.",
     )
     sequence: SequenceOut | None = Field(
         None,

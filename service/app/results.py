@@ -46,7 +46,7 @@ class SequenceAnswer:
 @dataclass(frozen=True)
 class DeferredLoop:
     """A loop a robot's frame ``frame_id`` proposed with map frame ``loop_frame_id`` and left
-    to the robot's next frame to confirm (the setting ``sequence_confirm_z``)."""
+    to a later frame to confirm (the setting ``sequence_confirm_z``)."""
 
     frame_id: int
     loop_frame_id: int
@@ -108,8 +108,9 @@ class QueryResult:
     loop_frame_id: int | None = None  # the frame to close the loop with, when status is "loop"
     # a loop the sequence passed with but left to the robot's next frame (status "candidate")
     pending_loop_frame_id: int | None = None
-    # the robot's previous frame's pending loop, confirmed by this answer (close it now)
-    confirmed: DeferredLoop | None = None
+    # the pending loops of the robot's frames just before, oldest first, that this answer's loop
+    # confirms (close them now)
+    confirmed: tuple[DeferredLoop, ...] = ()
     sequence: SequenceAnswer | None = None
     query_thumbnail: bytes | None = field(default=None, repr=False)  # kept if a loop closes
     # the search's frames, best first, filter applied: what an observation keeps as the places

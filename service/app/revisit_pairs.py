@@ -72,12 +72,11 @@ def record_verified(
     enqueue: Callable[[int], None] | None = None,
 ) -> int | None:
     """Keep an observation's closure as a pair (its stored frame ``frame_id`` and the partner
-    :func:`closure_partner` names), and the loop of the robot's previous frame that this answer
-    confirmed (source ``sequence``, as it would have been answered at once); queues an
+    :func:`closure_partner` names), and the pending loops of the robot's earlier frames that
+    this answer confirmed (source ``sequence``, as if each had been answered at once); queues an
     adaptation job when the atlas has collected its setting's number of new pairs. Returns the
     id of the pair of ``frame_id``, None when the answer is no closure."""
-    confirmed = result.confirmed
-    if confirmed is not None and settings.pairs_from_sequence_loops:
+    for confirmed in result.confirmed if settings.pairs_from_sequence_loops else ():
         _keep_pair(
             sessions,
             settings,

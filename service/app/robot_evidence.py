@@ -1,7 +1,8 @@
 """What the service knows about a robot that asks: who and when it asks, its earlier frames in
 the current sequence, the evidence read for it in the search session, and the verdict judged
 from that evidence (temporal consistency as DBoW2, a passed sequence a loop on its own, at once
-or, when its newest frame's own evidence is weak, once the robot's next frame confirms it).
+or, when its newest frame's own evidence is weak, once a later frame of the same place answers a
+loop at once: weak frames never confirm each other alone).
 
 Kept apart from the scoring (:mod:`service.app.sequences`) so the decision and the use cases read
 these types without importing the scorer.
@@ -46,15 +47,15 @@ class Earlier:
 class Verdict:
     """``loop_frame_id``: the frame to close the loop with when ``status`` is a loop (the
     single-frame match, or the sequence's aligned frame when only the sequence passed).
-    ``pending_loop_frame_id``: the sequence's aligned frame of a loop left to the robot's next
-    frame (status candidate); ``confirmed``: the robot's previous frame's pending loop, which
-    this frame's loop (answered or pending) confirms as the same place."""
+    ``pending_loop_frame_id``: the sequence's aligned frame of a loop left to a later frame
+    (status candidate); ``confirmed``: the pending loops of the robot's frames just before this
+    one (oldest first), which this frame's loop, answered at once, confirms as the same place."""
 
     status: PlaceStatus
     consistent: int
     loop_frame_id: int | None = None
     pending_loop_frame_id: int | None = None
-    confirmed: DeferredLoop | None = None
+    confirmed: tuple[DeferredLoop, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -71,8 +72,9 @@ class RobotEvidence:
     hit_order: list[int] | None = None
     # cosine of the query with the sequence's aligned frame (None: no sequence)
     sequence_similarity: float | None = None
-    # the loop the robot's previous frame left to this one (None: none waits)
-    previous_pending: DeferredLoop | None = None
+    # the pending loops of the robot's frames just before this one, oldest first (the run of
+    # its latest frames whose loops wait: :func:`service.app.sequences.pending_run`)
+    pending_run: tuple[DeferredLoop, ...] = ()
 
     def same_place(self, frame_id: int, other_id: int) -> bool | None:
         """Whether two map frames show one place by the consistency's rule (one reference
@@ -85,8 +87,8 @@ class RobotEvidence:
     def verdict(self, frame_id: int | None, passed: bool) -> Verdict:
         """The newest single-frame answer (its matched frame and whether it passed) judged with
         the previous observations; a passed sequence is a loop whatever they say, at once or,
-        when it awaits the next frame, as a candidate whose loop is pending. Either kind of loop
-        confirms the previous frame's pending loop when both name one place."""
+        when it awaits a later frame, as a candidate whose loop is pending. A loop answered at
+        once confirms the pending loops just before it that name its place."""
         at = self.position.get(frame_id, -1) if frame_id is not None else -1
         newest = Hypothesis(at, passed) if at >= 0 else None
         decision = decide([*self.previous, newest], self.trajectories, self.consistency)
@@ -103,14 +105,20 @@ class RobotEvidence:
             return Verdict(decision.status, decision.consistent)
         return replace(verdict, confirmed=self._confirmed(verdict))
 
-    def _confirmed(self, verdict: Verdict) -> DeferredLoop | None:
-        """The previous frame's pending loop when ``verdict``'s loop is the same place."""
-        pending = self.previous_pending
-        loop = verdict.loop_frame_id
-        loop = verdict.pending_loop_frame_id if loop is None else loop
-        if pending is None or loop is None:
-            return None
-        return pending if self.same_place(pending.loop_frame_id, loop) else None
+    def _confirmed(self, verdict: Verdict) -> tuple[DeferredLoop, ...]:
+        """The pending loops just before this frame that ``verdict``'s loop confirms: none while
+        this frame's loop is pending too (the run waits on), else, walking back from the newest,
+        each that names the same place as the loop after it (oldest first)."""
+        link = verdict.loop_frame_id
+        if link is None:
+            return ()
+        confirmed: list[DeferredLoop] = []
+        for pending in reversed(self.pending_run):
+            if not self.same_place(pending.loop_frame_id, link):
+                break
+            confirmed.append(pending)
+            link = pending.loop_frame_id
+        return tuple(reversed(confirmed))
 
 
 def single_frame_verdict(frame_id: int | None, passed: bool) -> Verdict:

@@ -122,12 +122,12 @@ def sequence_shortfalls(
 
 
 def awaits_next_frame(newest_z: float, threshold: float) -> str | None:
-    """Why a passed sequence's loop waits for the robot's next frame to confirm it (its newest
-    frame's own evidence is below ``threshold``, the setting ``sequence_confirm_z``), in an
-    operator's words; None when the loop is answered at once."""
+    """Why a passed sequence's loop waits for a later frame of the robot to confirm it (its
+    newest frame's own evidence is below ``threshold``, the setting ``sequence_confirm_z``), in
+    an operator's words; None when the loop is answered at once."""
     if newest_z >= threshold:
         return None
     return (
         f"this frame's own evidence (aligned_z {newest_z:.2f}) is below {threshold:g}: the loop "
-        "waits for the robot's next frame to confirm the place"
+        "waits for a later frame with strong evidence of its own to confirm the place"
     )

@@ -84,15 +84,18 @@ def query_sequence(
     return [frame_id for frame_id, _ in recent[first:]]
 
 
-def previous_pending(previous: Sequence[int], kept: dict[int, repo.Kept]) -> DeferredLoop | None:
-    """The loop the robot's previous frame of this sequence left to its next frame (None:
-    none waits, or the robot starts a new sequence)."""
-    if not previous or previous[-1] not in kept:
-        return None
-    last = kept[previous[-1]]
-    if not last.loop_pending or last.loop_frame_id is None:
-        return None
-    return DeferredLoop(previous[-1], last.loop_frame_id)
+def pending_run(previous: Sequence[int], kept: dict[int, repo.Kept]) -> tuple[DeferredLoop, ...]:
+    """The loops the robot's latest frames of this sequence left pending, oldest first: the
+    unbroken run of pending frames that ends with its previous frame (empty: none waits, or the
+    robot starts a new sequence). Bounded by the frames the sequence reads, so a loop waits at
+    most that many frames for one answered at once."""
+    run: list[DeferredLoop] = []
+    for frame_id in reversed(previous):
+        last = kept.get(frame_id)
+        if last is None or not last.loop_pending or last.loop_frame_id is None:
+            break
+        run.append(DeferredLoop(frame_id, last.loop_frame_id))
+    return tuple(reversed(run))
 
 
 def contrast_order(
@@ -186,7 +189,7 @@ class SequenceScorer:
                 self.consistency,
                 contrast_order(view, contrasted[0], hits),
                 _similarity(view, newest, sequence.frame_id) if sequence is not None else None,
-                previous_pending(previous, kept),
+                pending_run(previous, kept),
             )
 
     def _stays(

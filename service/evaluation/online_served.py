@@ -9,8 +9,8 @@ A frame whose insert makes the atlas reach a milestone queues a calibration job
 with the job runner's own code (:func:`service.evaluation.served_jobs.run_job_now`), as a
 worker would between two frames, and the next frame is answered by the calibrated model
 version. The row's PR sweep runs over ``loop_probability`` (what the service thresholds) and
-its operating point is the service's own ``status == "loop"`` (a frame whose loop the next frame
-confirmed counts as one).
+its operating point is the service's own ``status == "loop"`` (a frame whose pending loop a later
+frame confirmed counts as one).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from service.evaluation.served_pass import PARTS, decision_parts, loop_counts
 from service.evaluation.served_sweep import (
     SEQUENCE_LOOP_LOGIT,
     answered_frames,
-    confirms_previous,
+    confirmed_rows,
     decision_logit,
     loop_probability,
     swept_logit,
@@ -82,7 +82,6 @@ def served_replay(
     times = frame_times(trajectory, count)
     dim = pipeline.local.descriptor_dim
     index_of: dict[int, int] = {}
-    frame_of: list[int] = []  # stored frame ids, in order
     out = ServedReplay()
     with (
         replay_atlas(
@@ -110,9 +109,8 @@ def served_replay(
                 length=length,
                 exclude_recent=exclude_recent,
             )
-            if t and confirms_previous(answer, frame_of[-1]):  # the previous frame's loop
-                out.closable_logits[-1], out.status[-1] = SEQUENCE_LOOP_LOGIT, "loop"
-            frame_of.append(frame_id)
+            for row in confirmed_rows(answer, index_of):  # earlier frames' loops, late
+                out.closable_logits[row], out.status[row] = SEQUENCE_LOOP_LOGIT, "loop"
             index_of[frame_id] = t
             first = answered_frames(answer)
             out.references.append(index_of.get(first[0], -1) if first else -1)

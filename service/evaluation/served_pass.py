@@ -34,7 +34,7 @@ from service.evaluation.protocol import MethodResult, evaluate_ranking
 from service.evaluation.served_jobs import JobRun, queued_jobs, run_queued
 from service.evaluation.served_sweep import (
     answered_frames,
-    confirms_previous,
+    confirmed_rows,
     swept_probability,
     swept_score,
 )
@@ -159,7 +159,7 @@ def served_answers(
     sequence_z: list[list[float]] = []
     ran: list[JobRun] = []
     adapting = adapt_after_pairs if sequence_length else 0
-    stored: int | None = None  # the robot's previous frame (observations)
+    row_of: dict[int, int] = {}  # the robot's stored frames' rows (observations)
     with served_settings(service, extractor) as settings, queued_jobs(service, adapting) as queued:
         config = service.queries.verification.config
         for i, features in enumerate(queries):
@@ -177,10 +177,10 @@ def served_answers(
                     ),
                     sequence_length=sequence_length,
                 )
-                if confirms_previous(answer, stored):  # the previous frame's loop, one frame late
-                    scores[-1] = [x - scores[-1][0] + 1.0 for x in scores[-1]]  # p -> 1.0
-                    closable[-1], status[-1] = True, "loop"
-                stored = frame.id
+                for row in confirmed_rows(answer, row_of):  # earlier frames' loops, late
+                    scores[row] = [x - scores[row][0] + 1.0 for x in scores[row]]  # p -> 1.0
+                    closable[row], status[row] = True, "loop"
+                row_of[frame.id] = i
             else:
                 answer = service.query_features(
                     atlas_name=atlas, features=features, k=k, query_filter=query_filter

@@ -6,8 +6,8 @@ passes on its own evidence, whatever the threshold. The harness's served rows
 (:mod:`service.evaluation.served_pass`) and ``eval-online``'s served replay
 (:mod:`service.evaluation.online_served`) sweep the same way: closable answers from their
 probability (or logit) up, sequence loops at every threshold, the others never. A sequence
-loop left to the robot's next frame (``awaits_next``) counts for its own frame once the next
-answer confirms it (:func:`confirms_previous`), as a back end closes it then.
+loop left to a later frame (``awaits_next``) counts for its own frame once a later answer
+confirms it (:func:`confirmed_rows`), as a back end closes it then.
 """
 
 from __future__ import annotations
@@ -60,17 +60,16 @@ def swept_score(answer: QueryResult) -> tuple[float, bool]:
 
 def closed_by_sequence(answer: QueryResult) -> bool:
     """A loop on the robot's sequence's own evidence, answered at once: the service closes it
-    whatever ``LOOPNET_LOOP_PROBABILITY_MIN`` says. One that awaits the next frame is not (yet)."""
+    whatever ``LOOPNET_LOOP_PROBABILITY_MIN`` says. One that awaits a later frame is not (yet)."""
     sequence = answer.sequence
     return sequence is not None and sequence.passed and not sequence.awaits_next
 
 
-def confirms_previous(answer: QueryResult, previous_frame_id: int | None) -> bool:
-    """Whether ``answer`` confirms the pending loop of the robot's frame stored just before
-    (``previous_frame_id``): that frame's answer then counts as a loop on the sequence's
+def confirmed_rows(answer: QueryResult, row_of: dict[int, int]) -> list[int]:
+    """The rows (``row_of``: a stored frame's row in the sweep) of the robot's earlier frames
+    whose pending loops ``answer`` confirms: each then counts as a loop on the sequence's
     evidence."""
-    confirmed = answer.confirmed
-    return confirmed is not None and confirmed.frame_id == previous_frame_id
+    return [row_of[c.frame_id] for c in answer.confirmed if c.frame_id in row_of]
 
 
 def swept_logit(answer: QueryResult) -> float:

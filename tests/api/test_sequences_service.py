@@ -401,6 +401,9 @@ def test_a_robot_that_leaves_the_route_is_not_held_on_it_by_its_last_frames(
 SCATTERED = [0, 5, 13, 19, 34, 38]  # places far from the rover's route and from each other
 
 
+WEAK_SECOND = 1.2  # a second faint frame whose own evidence stays below CONFIRM_Z
+
+
 def off_the_map(place: int, weight: float) -> FrameFeatures:
     """A frame from somewhere the map does not hold that looks a little like many mapped
     places and, by ``weight``, like ``place``: its own evidence for ``place`` is weak."""
@@ -468,9 +471,9 @@ def test_a_loop_whose_newest_frame_is_weak_waits_for_the_next_frame(
     only faintly (its own aligned_z between NEWEST_Z_MIN and CONFIRM_Z): the sequence passes on
     the frames behind it, but the answer is a ``candidate`` whose loop is pending, as the first
     frame of a robot leaving the route would be. The frame after it decides: on the route
-    (place 26) its loop is the same place and its answer confirms the pending one (the revisit
-    pair is kept then); off the map it closes nothing, and the pending loop is never answered
-    nor kept as a pair."""
+    (place 26) its loop is answered at once, the same place, and its answer confirms the pending
+    one (the revisit pair is kept then); off the map it closes nothing, and the pending loop is
+    never answered nor kept as a pair."""
     with make_client(
         data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
     ) as client:
@@ -480,25 +483,60 @@ def test_a_loop_whose_newest_frame_is_weak_waits_for_the_next_frame(
         after = features(G[next_place]) if next_place is not None else off_the_map(26, 0.1)
         decided, decided_id = observe_stored(client, after, 106.0)
         pairs = pairs_of(client, weak_id), pairs_of(client, decided_id)
-    sequence = weak.sequence
-    assert sequence is not None and sequence.passed and sequence.awaits_next
-    assert NEWEST_Z_MIN <= sequence.aligned_z[-1] < CONFIRM_Z
-    assert (weak.status, weak.loop_frame_id, weak.pending_loop_frame_id) == (
-        "candidate",
-        None,
-        ids[25],
-    )
-    assert sequence.reason == (
-        f"this frame's own evidence (aligned_z {sequence.aligned_z[-1]:.2f}) is below 3: the "
-        "loop waits for the robot's next frame to confirm the place"
-    )
+    assert_pending(weak, ids[25])
     if next_place is None:
-        assert decided.status != "loop" and decided.confirmed is None
+        assert decided.status != "loop" and decided.confirmed == ()
         assert pairs == ([], [])
         return
     assert (decided.status, decided.loop_frame_id) == ("loop", ids[26])
-    assert decided.confirmed == DeferredLoop(weak_id, ids[25])
+    assert decided.confirmed == (DeferredLoop(weak_id, ids[25]),)
     assert pairs == ([(ids[25], "sequence")], [(ids[26], "sequence")])
+
+
+@pytest.mark.parametrize("last_place", [27, None], ids=["back-on-the-route", "off-the-map"])
+def test_two_weak_frames_wait_together_for_a_strong_one(
+    data_dir: Path, pipeline, last_place: int | None
+) -> None:  # type: ignore[no-untyped-def]
+    """Two weak frames in a row (places 25 and 26, each pending) do not confirm each other, as
+    a robot's first two frames off the map must not: the second answer confirms nothing. A
+    third frame back on the route (place 27, answered at once) confirms both, oldest first;
+    off the map, neither loop is ever answered nor kept."""
+    with make_client(
+        data_dir, pipeline, sequence_margin_min=3.0, trajectory_contrast_frames=0
+    ) as client:
+        ids, _ = map_then_rover_past_decoys(client, pipeline)
+        first, first_id = observe_stored(client, off_the_map(25, 0.8), 105.0)
+        second, second_id = observe_stored(client, off_the_map(26, WEAK_SECOND), 106.0)
+        after = features(G[last_place]) if last_place is not None else off_the_map(27, 0.1)
+        decided, decided_id = observe_stored(client, after, 107.0)
+        pairs = [pairs_of(client, i) for i in (first_id, second_id, decided_id)]
+    assert_pending(first, ids[25])
+    assert_pending(second, ids[26])
+    assert second.confirmed == ()
+    if last_place is None:
+        assert decided.status != "loop" and decided.confirmed == ()
+        assert pairs == [[], [], []]
+        return
+    assert (decided.status, decided.loop_frame_id) == ("loop", ids[27])
+    assert decided.confirmed == (DeferredLoop(first_id, ids[25]), DeferredLoop(second_id, ids[26]))
+    assert pairs == [[(ids[25], "sequence")], [(ids[26], "sequence")], [(ids[27], "sequence")]]
+
+
+def assert_pending(answer: QueryResult, loop_frame_id: int) -> None:
+    """``answer`` passed its sequence on a weak newest frame: a candidate whose loop with
+    ``loop_frame_id`` waits, and says why."""
+    sequence = answer.sequence
+    assert sequence is not None and sequence.passed and sequence.awaits_next
+    assert NEWEST_Z_MIN <= sequence.aligned_z[-1] < CONFIRM_Z
+    assert (answer.status, answer.loop_frame_id, answer.pending_loop_frame_id) == (
+        "candidate",
+        None,
+        loop_frame_id,
+    )
+    assert sequence.reason == (
+        f"this frame's own evidence (aligned_z {sequence.aligned_z[-1]:.2f}) is below 3: the "
+        "loop waits for a later frame with strong evidence of its own to confirm the place"
+    )
 
 
 def test_with_confirmation_off_a_weak_loop_is_answered_at_once(data_dir: Path, pipeline) -> None:  # type: ignore[no-untyped-def]

@@ -13,7 +13,7 @@ from service.evaluation.protocol import evaluate_ranking
 from service.evaluation.served_sweep import (
     SEQUENCE_LOOP_LOGIT,
     answered_frames,
-    confirms_previous,
+    confirmed_rows,
     swept_logit,
     swept_score,
 )
@@ -73,10 +73,10 @@ def test_a_loop_on_the_sequences_evidence_is_swept_as_one_at_every_threshold() -
     assert swept_logit(answer(closable=False)) == float("-inf")
 
 
-def test_a_pending_loop_is_swept_only_once_the_next_answer_confirms_it() -> None:
-    """A sequence loop left to the robot's next frame is not a loop at every threshold on its
-    own answer (which names the pending frame first); the next answer's confirmation of that
-    frame is what the served rows count, one frame late."""
+def test_a_pending_loop_is_swept_only_once_a_later_answer_confirms_it() -> None:
+    """A sequence loop left to a later frame is not a loop at every threshold on its own answer
+    (which names the pending frame first); a later answer's confirmation of that frame is what
+    the served rows count, late, in that frame's row."""
     pending = answer(closable=False, sequence_passed=True)
     assert pending.sequence is not None
     pending.sequence.awaits_next = True
@@ -85,6 +85,7 @@ def test_a_pending_loop_is_swept_only_once_the_next_answer_confirms_it() -> None
     assert swept_logit(pending) == float("-inf")
     assert answered_frames(pending)[0] == 30
     later = answer(closable=False, loop_frame=31, sequence_passed=True)
-    later.confirmed = DeferredLoop(frame_id=55, loop_frame_id=30)
-    assert confirms_previous(later, 55) and not confirms_previous(later, 54)
-    assert not confirms_previous(pending, 55)
+    later.confirmed = (DeferredLoop(frame_id=54, loop_frame_id=29), DeferredLoop(55, 30))
+    assert confirmed_rows(later, {54: 3, 55: 4, 56: 5}) == [3, 4]
+    assert confirmed_rows(later, {55: 4}) == [4]  # a frame the sweep has no row of
+    assert confirmed_rows(pending, {55: 4}) == []

@@ -192,11 +192,12 @@ def test_one_place_for_the_sequence_is_the_consistencys_step() -> None:
     assert evidence.same_place(104, 999) is None  # not held by the map
 
 
-def test_a_weak_newest_frame_leaves_its_sequences_loop_to_the_next_frame() -> None:
-    """A passed sequence that awaits the next frame is a candidate with its loop pending, not a
-    loop; a consistent single-frame loop is not deferred. The robot's next loop, answered or
-    pending, confirms the previous frame's pending loop when both name one place (the
-    consistency's step), and only then."""
+def test_a_weak_newest_frame_leaves_its_sequences_loop_to_a_strong_later_frame() -> None:
+    """A passed sequence that awaits a later frame is a candidate with its loop pending, not a
+    loop; a consistent single-frame loop is not deferred. A loop answered at once confirms the
+    run of pending loops just before it, walking back while each names the same place as the
+    loop after it (the consistency's step); a pending loop confirms nothing (two weak frames off
+    the map must not confirm each other), and a run broken by another place stops there."""
     from service.app.results import DeferredLoop, SequenceAnswer
     from service.app.robot_evidence import RobotEvidence
     from service.ml.sequences import ConsistencySettings, Hypothesis, PlaceStatus, Trajectories
@@ -206,13 +207,13 @@ def test_a_weak_newest_frame_leaves_its_sequences_loop_to_the_next_frame() -> No
     settings = ConsistencySettings(required=2, max_step=3)
 
     def evidence(
-        place: int | None, awaits: bool, pending: DeferredLoop | None = None, previous=None
+        place: int | None, awaits: bool, run: tuple[DeferredLoop, ...] = (), previous=None
     ) -> RobotEvidence:  # type: ignore[no-untyped-def]
         sequence = None
         if place is not None:
             sequence = SequenceAnswer(9.0, 5, [], 1.0, place, 5.0, None, True, awaits_next=awaits)
         return RobotEvidence(
-            sequence, previous or [None], position, trajectories, settings, previous_pending=pending
+            sequence, previous or [None], position, trajectories, settings, pending_run=run
         )
 
     waiting = evidence(105, awaits=True).verdict(None, False)
@@ -225,11 +226,19 @@ def test_a_weak_newest_frame_leaves_its_sequences_loop_to_the_next_frame() -> No
     consistent = evidence(105, awaits=True, previous=[Hypothesis(4, True)]).verdict(104, True)
     assert (consistent.status, consistent.loop_frame_id) == (PlaceStatus.LOOP, 104)
 
-    pending = DeferredLoop(frame_id=7, loop_frame_id=105)
-    assert evidence(106, awaits=False, pending=pending).verdict(None, False).confirmed == pending
-    assert evidence(106, awaits=True, pending=pending).verdict(None, False).confirmed == pending
-    assert evidence(112, awaits=False, pending=pending).verdict(None, False).confirmed is None
-    assert evidence(None, awaits=False, pending=pending).verdict(None, False).confirmed is None
+    first, second = DeferredLoop(7, loop_frame_id=104), DeferredLoop(8, loop_frame_id=105)
+    assert evidence(106, awaits=False, run=(second,)).verdict(None, False).confirmed == (second,)
+    assert evidence(106, awaits=True, run=(second,)).verdict(None, False).confirmed == ()
+    assert evidence(112, awaits=False, run=(second,)).verdict(None, False).confirmed == ()
+    assert evidence(None, awaits=False, run=(second,)).verdict(None, False).confirmed == ()
+    both = evidence(107, awaits=False, run=(first, second)).verdict(None, False)
+    assert both.confirmed == (first, second)
+    elsewhere = DeferredLoop(6, loop_frame_id=115)  # a run broken by another place
+    assert evidence(107, awaits=False, run=(elsewhere, second)).verdict(None, False).confirmed == (
+        second,
+    )
+    by_consistency = evidence(None, awaits=False, run=(second,), previous=[Hypothesis(6, True)])
+    assert by_consistency.verdict(107, True).confirmed == (second,)
 
 
 def test_a_sequence_names_a_place_from_the_decisions_neutral_margin() -> None:

@@ -58,14 +58,16 @@ def distinctiveness(
 
 
 # A loop a passed sequence carries while its newest frame's own evidence is below this
-# (aligned_z, standard deviations) is not answered at once: it waits for the robot's next frame,
-# whose loop must be the same place (the consistency's rule), and is confirmed in that frame's
-# answer. A robot's first frame off the mapped route still drags a tail of frames that align
-# along it, and its own evidence is then weak but not absent; no test of its own frames can tell
-# it from a bland stretch of the route, but its next frame can. On the off-route proxy
-# (Nordland, ten detours) the first half's two false loops had newest aligned_z 1.6 and 2.6, and
-# 3 is the least that refuses both; it cost 1.1% of that half's right loops (benchmarks/RESULTS.md,
-# issue 25, stop 46). The default of the setting sequence_confirm_z.
+# (aligned_z, standard deviations) is not answered at once: it waits for a later frame of the
+# robot whose loop is answered at once and the same place (the consistency's rule), with every
+# frame between pending on that place too, and is confirmed in that frame's answer. A robot's
+# first frame off the mapped route still drags a tail of frames that align along it, and its own
+# evidence is then weak but not absent; no test of its own frames can tell it from a bland
+# stretch of the route, but the frames after it can. On the off-route proxy (Nordland, ten
+# detours) the first half's two false loops had newest aligned_z 1.6 and 2.6, and 3 is the least
+# that refuses both; it cost 1.1% of that half's right loops (benchmarks/RESULTS.md, issue 25,
+# stop 46). Two weak frames off the map do not confirm each other (stop 47). The default of the
+# setting sequence_confirm_z.
 CONFIRM_Z = 3.0
 # How far along its trajectory a sequence's place must lie past the place the robot's previous
 # observation closed a loop with, to continue that loop: exactly one frame. The sequence model

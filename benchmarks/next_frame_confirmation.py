@@ -3,6 +3,7 @@ offline from ``loopnet eval`` reports made before the rule (stop 46).
 
     python benchmarks/next_frame_confirmation.py /work/runs/nord/report.json \\
         /work/runs/detours/report.json [--thresholds 1.5,2,2.5,3,3.5,4] [--out FILE.json]
+    python benchmarks/next_frame_confirmation.py --anchored REPORTS   # stop 47's rule
 
 The rule (:data:`service.ml.sequences.distinctiveness.CONFIRM_Z`): a loop closed while the
 newest frame's own ``aligned_z`` is below the threshold is answered only once the next query's
@@ -13,6 +14,13 @@ false loops kept of all false. Exact for a report made without the rule and with
 adaptation (the rule changes no provisional decision, only when one is answered); with
 adaptation, the pairs a job learns from change too, so a run of the service gives the final
 figures. Rightness is the report's (any layout). Nothing here is a service path.
+
+``--anchored`` reads reports made *with* stop 46's rule (a pending loop confirmed by the next
+frame's loop, answered or pending) and gives what stop 47's rule costs and refuses: a pending
+loop is confirmed only by a later loop answered at once, through an unbroken run of pending
+loops of the same place. A loop counts as pending when its sequence passed with the newest
+``aligned_z`` below :data:`CONFIRM_Z` (a consistent single-frame loop that also passed that way
+was answered at once, so the figures are upper bounds of the loss).
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import numpy as np
 from served_report import loop_frames, robot_row  # a sibling script (its folder is on the path)
 
 from service.ml.sequences import ConsistencySettings
+from service.ml.sequences.distinctiveness import CONFIRM_Z
 
 SAME_PLACE = ConsistencySettings().max_step  # how far apart two loops of one place may lie
 
@@ -41,9 +50,25 @@ def confirmed(details: dict[str, Any], threshold: float) -> tuple[np.ndarray, np
     return loop, loop & ((newest >= threshold) | same_place)
 
 
-def screen(details: dict[str, Any], threshold: float) -> list[dict[str, Any]]:
-    """Per half of the queries: loops before, right loops lost, false loops before and kept."""
-    loop, kept = confirmed(details, threshold)
+def anchored(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Per query of a report made with stop 46's rule: whether it was a loop, and whether it
+    still is when only a loop answered at once confirms a pending one (walking back from the
+    end: a confirmed pending loop's next loop was the same place, answered or pending)."""
+    sequences = np.array(details["per_query_sequence"], float)
+    newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
+    loop = np.array([s == "loop" for s in details["per_query_status"]])
+    pending = (sequences[:, 3] == 1) & (newest < CONFIRM_Z)
+    kept = loop & ~pending
+    for i in range(len(loop) - 2, -1, -1):
+        if loop[i] and pending[i]:
+            kept[i] = not pending[i + 1] or kept[i + 1]
+    return loop, kept
+
+
+def screen(details: dict[str, Any], threshold: float | None) -> list[dict[str, Any]]:
+    """Per half of the queries: loops before, right loops lost, false loops before and kept
+    (``threshold`` None: :func:`anchored`)."""
+    loop, kept = confirmed(details, threshold) if threshold is not None else anchored(details)
     right = np.array(details["per_query_right"], bool)
     half = len(loop) // 2
     out = []
@@ -61,30 +86,37 @@ def screen(details: dict[str, Any], threshold: float) -> list[dict[str, Any]]:
     return out
 
 
+def label(threshold: float | None) -> str:
+    return "anchored" if threshold is None else f"{threshold:g}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path)
     parser.add_argument("--thresholds", default="1.5,2,2.5,3,3.5,4")
     parser.add_argument("--out", type=Path, help="write the figures as JSON")
+    parser.add_argument(
+        "--anchored", action="store_true", help="stop 47's rule, on reports made with stop 46's"
+    )
     args = parser.parse_args()
-    thresholds = [float(t) for t in args.thresholds.split(",")]
+    thresholds = [None] if args.anchored else [float(t) for t in args.thresholds.split(",")]
     record: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for path in args.reports:
         details = robot_row(json.loads(path.read_text()))["details"]
-        record[str(path)] = {f"{t:g}": screen(details, t) for t in thresholds}
+        record[str(path)] = {label(t): screen(details, t) for t in thresholds}
     print("threshold | " + " | ".join(str(p) for p in args.reports))
     print("  each half: right loops lost of loops, false kept of false")
     for t in thresholds:
         cells = []
         for path in args.reports:
-            halves = record[str(path)][f"{t:g}"]
+            halves = record[str(path)][label(t)]
             cells.append(
                 " / ".join(
                     f"-{h['right_lost']} of {h['loops']}, {h['false_kept']} of {h['false']}"
                     for h in halves
                 )
             )
-        print(f"{t:g} | " + " | ".join(cells))
+        print(f"{label(t)} | " + " | ".join(cells))
     if args.out:
         args.out.write_text(json.dumps(record, indent=1) + "\n")
 

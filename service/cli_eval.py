@@ -201,8 +201,8 @@ def add_online_parser(commands: argparse._SubParsersAction) -> None:  # type: ig
         default="",
         metavar="N[,N...]",
         help="each served row again with automatic adaptation after every N revisit pairs the "
-        "replay's observations kept instead of the service's default (LOOPNET_ADAPT_AFTER_PAIRS; "
-        "0: off; the jobs run between frames); '' for none",
+        "replay's observations kept instead of the service's default (LOOPNET_ADAPT_AFTER_PAIRS, "
+        "500; 0: off, the row without adaptation; the jobs run between frames); '' for none",
     )
     on.add_argument(
         "--limit", type=int, help="DATASET: only the first N map frames and their revisits"

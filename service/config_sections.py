@@ -315,12 +315,15 @@ class JobSettings(BaseSettings):
         "the frames it did not train on.",
     )
     adapt_after_pairs: int = Field(
-        0,
+        500,
         ge=0,
         description="Queue an adaptation job (kind adapt: learned whitening from revisit pairs) "
         "once an atlas has collected this many revisit pairs (verified closures and sequence "
-        "loops observe kept, and labelled pairs) since its last one "
-        "(0: never, the default; operators submit adapt jobs themselves).",
+        "loops observe kept, and labelled pairs) since its last one; its gate activates the "
+        "new version only when it is not worse on held-out pairs and stretches. 0: never "
+        "(operators submit adapt jobs themselves). At 500, Nordland's winter drive over the "
+        "summer map closes 0.70 -> 0.78 of its frames as loops, none false, and a drive with "
+        "ten unmapped detours none false either (benchmarks/RESULTS.md, issue 25, stop 47).",
     )
     pairs_from_sequence_loops: bool = Field(
         True,

@@ -197,7 +197,7 @@ class SequenceOut(BaseModel):
         None,
         description='Why the sequence is not a loop on its own evidence, e.g. "margin 3.20 is '
         'below 4.5" or "this frame\'s own evidence (aligned_z 0.41) is below 1", or why its '
-        "loop waits for the robot's next frame (awaits_next); null when it passed and does not "
+        "loop waits for a later frame (awaits_next); null when it passed and does not "
         "wait.",
     )
     awaits_next: bool = Field(
@@ -296,7 +296,7 @@ class QueryOut(BaseModel):
         "observations agree on one place, or the robot's sequence passed on its own "
         "(sequence.passed) with this frame's own evidence strong enough to answer at once; "
         "'candidate': loop_closure holds, not yet consistent, or the sequence's loop waits for "
-        "the robot's next frame (pending_loop_frame_id), or the match is more likely the same "
+        "a later frame (pending_loop_frame_id), or the match is more likely the same "
         "place than not (decision.loop_probability >= 0.5) without reaching the loop threshold; "
         "'new_place': nothing is likely."
     )

@@ -124,7 +124,7 @@ class Observations:
             fields=fields,
             features=features,
             proposals=result.proposals,
-            # a loop, or one left to the robot's next frame: either may be tracked
+            # a loop, or one left to a later frame: either may be tracked
             loop_frame_id=(
                 result.loop_frame_id
                 if result.loop_frame_id is not None

@@ -25,8 +25,8 @@ class SequenceAnswer:
     must reach :data:`~service.ml.sequences.distinctiveness.NEWEST_Z_MIN`, and the newest few
     may not together look off the map, :mod:`service.ml.sequences.off_map`). ``awaits_next``: it
     passed, but its newest frame's own evidence is below
-    :data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`, so its loop waits for the robot's
-    next frame. ``reason``: why it is not a loop now (None when it passed and does not wait)."""
+    :data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`, so its loop waits for a later
+    frame answered at once. ``reason``: why it is not a loop now (None when it passed and does not wait)."""
 
     score: float
     length: int
@@ -106,7 +106,7 @@ class QueryResult:
     new_place: bool = True  # status == "new_place", a field of its own
     consistent: int = 0  # consecutive agreeing observations, this one included
     loop_frame_id: int | None = None  # the frame to close the loop with, when status is "loop"
-    # a loop the sequence passed with but left to the robot's next frame (status "candidate")
+    # a loop the sequence passed with but left to a later frame (status "candidate")
     pending_loop_frame_id: int | None = None
     # the pending loops of the robot's frames just before, oldest first, that this answer's loop
     # confirms (close them now)

@@ -9,7 +9,7 @@ map (:func:`service.ml.sequences.off_map.left_the_map`), and a place that contin
 newest loop needs only the tracking margin (:func:`recent_loops`,
 :func:`service.ml.sequences.margin_needed`). What fails is said in an operator's words
 (:func:`sequence_shortfalls`). A sequence that passes while its newest frame's own evidence is
-weak waits for the robot's next frame (:func:`awaits_next_frame`).
+weak waits for a later frame answered at once (:func:`awaits_confirmation`).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def sequence_shortfalls(
     return out
 
 
-def awaits_next_frame(newest_z: float, threshold: float) -> str | None:
+def awaits_confirmation(newest_z: float, threshold: float) -> str | None:
     """Why a passed sequence's loop waits for a later frame of the robot to confirm it (its
     newest frame's own evidence is below ``threshold``, the setting ``sequence_confirm_z``), in
     an operator's words; None when the loop is answered at once."""

@@ -33,7 +33,7 @@ from service.app.robot_evidence import Earlier, RobotContext, RobotEvidence
 from service.app.sequence_map import SequenceMap, SequenceMaps
 from service.app.sequence_rules import (
     TrackedLoop,
-    awaits_next_frame,
+    awaits_confirmation,
     ran_ahead,
     recent_loops,
     sequence_shortfalls,
@@ -296,7 +296,7 @@ class SequenceScorer:
         waits = (
             None
             if shortfalls
-            else awaits_next_frame(best.newest_z, self.settings.sequence_confirm_z)
+            else awaits_confirmation(best.newest_z, self.settings.sequence_confirm_z)
         )
         return SequenceAnswer(
             score=round(float(best.score), 6),

@@ -125,8 +125,8 @@ def add_frame(
 
     ``proposals``: the frames the frame's own search returned, best first (an observation's),
     kept for sequence scoring (:class:`~service.storage.models.FrameProposals`), with the frame
-    its observation closed a loop with (``loop_frame_id``; ``loop_pending``: a loop left to the
-    robot's next frame to confirm)."""
+    its observation closed a loop with (``loop_frame_id``; ``loop_pending``: a loop left to a
+    later frame to confirm)."""
     width, height = features.image_size
     frame = Frame(
         atlas_id=atlas.id,
@@ -165,7 +165,7 @@ def add_frame(
 class Kept(NamedTuple):
     """What an observed frame's observation kept: its search's proposals (int64 frame ids,
     best first), the frame it closed a loop with (None: no loop) and whether that loop waits
-    for the robot's next frame to confirm it."""
+    for a later frame to confirm it."""
 
     proposals: np.ndarray
     loop_frame_id: int | None

@@ -143,8 +143,8 @@ class FrameIngest:
         with the atlas's *current* heads and added to its index, so a model swap in between
         cannot leave the frame embedded by the wrong version. ``proposals``: what the frame's
         own search found (an observation's), kept for sequence scoring; ``loop_frame_id``: the
-        frame that observation closed a loop with (``loop_pending``: or left to the robot's next
-        frame to confirm)."""
+        frame that observation closed a loop with (``loop_pending``: or left to a later frame to
+        confirm)."""
         if self.states.store_kind == PGVECTOR:  # load the atlas (and its table) beforehand
             with self.sessions() as session:
                 self.states.loaded(self.checked_atlas(session, atlas_name).id)

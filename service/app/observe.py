@@ -124,12 +124,7 @@ class Observations:
             fields=fields,
             features=features,
             proposals=result.proposals,
-            # a loop, or one left to a later frame: either may be tracked
-            loop_frame_id=(
-                result.loop_frame_id
-                if result.loop_frame_id is not None
-                else result.pending_loop_frame_id
-            ),
+            loop_frame_id=result.proposed_loop_frame_id,  # answered or pending: either is tracked
             loop_pending=result.pending_loop_frame_id is not None,
         )
         return result, frame

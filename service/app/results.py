@@ -26,7 +26,8 @@ class SequenceAnswer:
     may not together look off the map, :mod:`service.ml.sequences.off_map`). ``awaits_next``: it
     passed, but its newest frame's own evidence is below
     :data:`~service.ml.sequences.distinctiveness.CONFIRM_Z`, so its loop waits for a later
-    frame answered at once. ``reason``: why it is not a loop now (None when it passed and does not wait)."""
+    frame answered at once. ``reason``: why it is not a loop now (None when it passed and does
+    not wait)."""
 
     score: float
     length: int
@@ -119,6 +120,12 @@ class QueryResult:
     decision: Decision | None = None  # the loop probability, its parts and why it failed
     # the asking robot's newest frames taken as its current stay and left out (service.app.stay)
     stay_frames: int = 0
+
+    @property
+    def proposed_loop_frame_id(self) -> int | None:
+        """The frame of this answer's loop, answered or pending (None: no loop): what an
+        observation stores for tracking, and the frame the harness names first."""
+        return self.loop_frame_id if self.loop_frame_id is not None else self.pending_loop_frame_id
 
 
 def place_margin(candidates: list[Candidate]) -> float | None:

@@ -3,8 +3,8 @@
 ``observe`` records one whenever its best candidate is geometrically verified (inliers at or
 above the atlas's minimum; source ``observe``): the new frame and the frame it matched, often
 across a change of condition or robot; and, unless the setting turns it off, whenever it
-answers ``loop`` on its robot's sequence without such a match, or confirms the loop its robot's
-previous frame left pending (source ``sequence``: that frame and the loop's frame), which on
+answers ``loop`` on its robot's sequence without such a match, or confirms the loops its robot's
+frames just before left pending (source ``sequence``: each frame and its loop's frame), which on
 low-texture or changed frames is most of the loops it closes. Operators label more through the
 API (and delete wrong ones). A ``query`` keeps no frame, so it gives no pair. Pairs are chosen
 for a job by robot, time and submap (:class:`PairFilter`).

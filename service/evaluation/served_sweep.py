@@ -28,9 +28,7 @@ def answered_frames(answer: QueryResult) -> list[int]:
     match's: a lower threshold makes it the loop); else the robot's sequence's aligned frame,
     else the match; then the other candidates."""
     ids = [c.frame_id for c in answer.candidates]
-    first = answer.loop_frame_id
-    if first is None:
-        first = answer.pending_loop_frame_id
+    first = answer.proposed_loop_frame_id
     decision = answer.decision
     if first is None and answer.match is not None and decision is not None and decision.closable:
         first = answer.match.frame_id

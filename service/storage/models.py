@@ -265,8 +265,8 @@ class FrameProposals(Base):
     (stored by ``POST /frames``, or restored from a snapshot) is searched again instead.
     ``loop_frame_id``: the frame its observation closed a loop with (None: no loop), which the
     robot's next observation may continue (loop tracking); a plain id, the frame may have been
-    deleted since. ``loop_pending``: that loop was not answered yet, it waits for the robot's
-    next observation to confirm it (service.ml.sequences.distinctiveness.CONFIRM_Z)."""
+    deleted since. ``loop_pending``: that loop was not answered yet, it waits for a later
+    observation answered at once to confirm it (service.ml.sequences.distinctiveness.CONFIRM_Z)."""
 
     __tablename__ = "frame_proposals"
 

@@ -20,8 +20,11 @@ frame's loop, answered or pending) and gives what stop 47's rule costs and refus
 loop is confirmed only by a later loop answered at once, through an unbroken run of pending
 loops of the same place. A loop counts as pending when its sequence passed with the newest
 ``aligned_z`` below :data:`CONFIRM_Z` (a consistent single-frame loop that also passed that way
-was answered at once, which overstates the loss; a run of the service can still lose a few loops
-more, 3 on Nordland at stop 47, so read the figures as close, not as bounds).
+was answered at once, which overstates the loss), and is confirmed only by a loop within the
+robot's frames that the service reads back (:func:`reach`), as the service bounds the run
+(:func:`service.app.sequences.pending_run`). Without that bound the screen kept 3 Nordland
+loops that the service lost (queries 3518-3520, the oldest of a run of 13 pending loops; stop
+48); with it, stop 46's Nordland report gives the served count exactly (2,482).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from typing import Any
 import numpy as np
 from served_report import loop_frames, robot_row  # a sibling script (its folder is on the path)
 
+from service.config_sections import SequenceSettings
 from service.ml.sequences import ConsistencySettings
 from service.ml.sequences.distinctiveness import CONFIRM_Z
 
@@ -51,25 +55,41 @@ def confirmed(details: dict[str, Any], threshold: float) -> tuple[np.ndarray, np
     return loop, loop & ((newest >= threshold) | same_place)
 
 
-def anchored(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def anchored(details: dict[str, Any], reach: int) -> tuple[np.ndarray, np.ndarray]:
     """Per query of a report made with stop 46's rule: whether it was a loop, and whether it
-    still is when only a loop answered at once confirms a pending one (walking back from the
-    end: a confirmed pending loop's next loop was the same place, answered or pending)."""
+    still is when only a loop answered at once, at most ``reach`` frames later, confirms a
+    pending one (walking back from the end: a confirmed pending loop's next loop was the same
+    place, answered or pending)."""
     sequences = np.array(details["per_query_sequence"], float)
     newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
     loop = np.array([s == "loop" for s in details["per_query_status"]])
     pending = (sequences[:, 3] == 1) & (newest < CONFIRM_Z)
     kept = loop & ~pending
+    anchor = np.full(len(loop), -1)  # the loop answered at once that confirms a pending one
     for i in range(len(loop) - 2, -1, -1):
         if loop[i] and pending[i]:
-            kept[i] = not pending[i + 1] or kept[i + 1]
+            anchor[i] = i + 1 if not pending[i + 1] else anchor[i + 1] if kept[i + 1] else -1
+            kept[i] = 0 < anchor[i] - i <= reach
     return loop, kept
 
 
-def screen(details: dict[str, Any], threshold: float | None) -> list[dict[str, Any]]:
+def reach(row: dict[str, Any]) -> int:
+    """How many frames after a pending loop one answered at once may confirm it: the robot's
+    previous frames the service reads back (:meth:`service.app.sequences.SequenceScorer`: the
+    longest of L, from the row's name ``+seqL``, the consistency's k and the trajectory
+    contrast's frames + 1, less the newest frame), at the default settings: 10 at L = 10."""
+    length = int(row["name"].rsplit("+seq", 1)[1])
+    contrast = SequenceSettings().trajectory_contrast_frames
+    return max(length, ConsistencySettings().required, contrast + 1) - 1
+
+
+def screen(row: dict[str, Any], threshold: float | None) -> list[dict[str, Any]]:
     """Per half of the queries: loops before, right loops lost, false loops before and kept
     (``threshold`` None: :func:`anchored`)."""
-    loop, kept = confirmed(details, threshold) if threshold is not None else anchored(details)
+    details = row["details"]
+    loop, kept = (
+        confirmed(details, threshold) if threshold is not None else anchored(details, reach(row))
+    )
     right = np.array(details["per_query_right"], bool)
     half = len(loop) // 2
     out = []
@@ -103,8 +123,8 @@ def main() -> None:
     thresholds = [None] if args.anchored else [float(t) for t in args.thresholds.split(",")]
     record: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for path in args.reports:
-        details = robot_row(json.loads(path.read_text()))["details"]
-        record[str(path)] = {label(t): screen(details, t) for t in thresholds}
+        row = robot_row(json.loads(path.read_text()))
+        record[str(path)] = {label(t): screen(row, t) for t in thresholds}
     print("threshold | " + " | ".join(str(p) for p in args.reports))
     print("  each half: right loops lost of loops, false kept of false")
     for t in thresholds:

@@ -87,8 +87,9 @@ def query_sequence(
 def pending_run(previous: Sequence[int], kept: dict[int, repo.Kept]) -> tuple[DeferredLoop, ...]:
     """The loops the robot's latest frames of this sequence left pending, oldest first: the
     unbroken run of pending frames that ends with its previous frame (empty: none waits, or the
-    robot starts a new sequence). Bounded by the frames the sequence reads, so a loop waits at
-    most that many frames for one answered at once."""
+    robot starts a new sequence). Bounded by the frames read back (the longest of the sequence,
+    the consistency and the trajectory contrast, less the newest frame: 10 at the defaults), so
+    a loop waits at most that many frames for one answered at once."""
     run: list[DeferredLoop] = []
     for frame_id in reversed(previous):
         last = kept.get(frame_id)

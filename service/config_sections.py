@@ -151,7 +151,7 @@ class DecisionSettings(BaseSettings):
         "mnn",
         description="Local-feature matcher of geometric verification: 'mnn' (mutual nearest "
         "neighbours + ratio test, any extractor), 'lightglue' (LightGlue-DISK, DISK only; "
-        "0.3-1 s a candidate on a 2-core CPU; on cohog200 it verifies more right day/night "
+        "0.3-1 s a candidate on a 2-core CPU; on cohog200 it verifies more right "
         "answers than MNN but also near misses 3-5 frames off, and closed 2 false loops in 140 "
         "at the defaults: benchmarks/RESULTS.md, issue 25, stop 47) or 'auto' (LightGlue for "
         "DISK, MNN otherwise).",

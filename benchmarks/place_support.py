@@ -62,7 +62,9 @@ def place_decisions(
         answered[q] = _picked(place, best, support, pick)
         row = dict(zip(PARTS, parts[q], strict=False))
         rival = None
-        if not math.isnan(row["rival"]):  # the part is log((1 + own) / (1 + rival's))
+        # the part is log((1 + own) / (1 + rival's)), clipped as served: a rival far below the
+        # match reads as the clip's, which the probability clips again
+        if not math.isnan(row["rival"]):
             rival = math.expm1(math.log1p(own) - row["rival"])
         score = None if math.isnan(row["score"]) else float(row["score"])
         evidence = Evidence(

@@ -323,8 +323,8 @@ class QueryOut(BaseModel):
         "each names the same place as the loop after it. Close each now, between its frame and "
         "its loop_frame_id. Empty when none waits, or when this observation does not confirm "
         "them: a pending loop followed by an answer that is neither the same place's loop nor "
-        "pending is dropped, and so is one more frames back than the service reads the robot's "
-        "sequence (10 at the defaults): a back end may forget a pending loop that is older.",
+        "pending is dropped, and so is one further back among the robot's frames than the "
+        "service reads (10 at the defaults): a back end may forget an older pending loop.",
     )
     sequence: SequenceOut | None = Field(
         None,

@@ -11,7 +11,14 @@ down or stop); this measures what a guard "the place advanced at least ``--speed
 per frame over the last ``--frames`` frames" would refuse among the loops of each report's
 robot row, right and false, before anyone builds it.
 
-    python benchmarks/stalled_track.py REPORT [REPORT ...] --frames 3,4,5 --speeds 0.25,0.5
+    python benchmarks/stalled_track.py REPORT [REPORT ...] --frames 3,4,5 --speeds 0.25,0.5 \
+        --slacks 1,2
+
+A second guard mirrors the service's run-ahead rule (:func:`service.app.sequence_rules.ran_ahead`:
+no further past a recent loop than the sequence's fastest speed carries a robot, plus a slack):
+refuse a loop that lies less far past one of the robot's loops of its last
+:data:`TRACKING_DROPOUT` frames (answered or pending, as the service stores them) than the
+sequence's *slowest* speed carries it, less ``--slacks``.
 
 The place of a query is its sequence's aligned map frame whether or not the sequence passed
 (``per_query_sequence``); map frames are compared by index, so references must lie in route
@@ -30,6 +37,9 @@ from typing import Any
 import numpy as np
 from served_report import loop_frames, robot_row  # a sibling script
 
+from service.ml.sequences import SequenceSettings
+from service.ml.sequences.distinctiveness import CONFIRM_Z, TRACKING_DROPOUT
+
 
 def stalled(details: dict[str, Any], frames: int, speed: float) -> np.ndarray:
     """The queries answered ``loop`` whose sequence place advanced by at least 0 and less than
@@ -46,11 +56,33 @@ def stalled(details: dict[str, Any], frames: int, speed: float) -> np.ndarray:
     return np.array(found, np.int64)
 
 
+def fell_behind(details: dict[str, Any], slack: float) -> np.ndarray:
+    """The queries answered ``loop`` whose frame lies less far past one of the robot's loops of
+    its last :data:`TRACKING_DROPOUT` frames than the slowest speed carries it, less ``slack``
+    (a loop pending when its sequence passed with the newest ``aligned_z`` below
+    :data:`CONFIRM_Z`, held at its sequence's frame)."""
+    loop, frames = loop_frames(details)
+    sequences = np.array(details["per_query_sequence"], float)
+    newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
+    pending = (sequences[:, 3] == 1) & (newest < CONFIRM_Z) & ~loop
+    held = np.where(loop, frames, np.where(pending, np.nan_to_num(sequences[:, 0], nan=-1), -1))
+    slowest = float(min(SequenceSettings().speeds))
+    found = []
+    for i in np.flatnonzero(loop):
+        for since in range(1, min(TRACKING_DROPOUT, int(i)) + 1):
+            j = i - since
+            if held[j] >= 0 and frames[i] - held[j] < slowest * since - slack:
+                found.append(i)
+                break
+    return np.array(found, np.int64)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("reports", nargs="+", type=Path)
     parser.add_argument("--frames", default="3,4,5")
     parser.add_argument("--speeds", default="0.25,0.5")
+    parser.add_argument("--slacks", default="1,2", help="the run-ahead mirror's slacks")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     record: dict[str, list[dict[str, Any]]] = {}
@@ -77,6 +109,16 @@ def main() -> None:
                         "false_refused": false,
                     }
                 )
+        for slack in (float(v) for v in args.slacks.split(",")):
+            refused = fell_behind(details, slack)
+            false = [int(q) for q in refused if not right[q]]
+            print(
+                f"  behind a recent loop by more than the slowest speed, slack {slack:g}: "
+                f"refuses {len(refused) - len(false)} right, {len(false)} false {false[:10]}"
+            )
+            record[str(path)].append(
+                {"slack": slack, "right_refused": len(refused) - len(false), "false_refused": false}
+            )
     if args.out:
         args.out.write_text(json.dumps(record, indent=1) + "\n")
 

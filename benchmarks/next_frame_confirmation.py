@@ -35,11 +35,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from served_report import loop_frames, robot_row  # a sibling script (its folder is on the path)
+from served_report import (  # a sibling script (its folder is on the path)
+    loop_frames,
+    newest_z,
+    robot_row,
+    weak_passes,
+)
 
 from service.config_sections import SequenceSettings
 from service.ml.sequences import ConsistencySettings
-from service.ml.sequences.distinctiveness import CONFIRM_Z
 
 SAME_PLACE = ConsistencySettings().max_step  # how far apart two loops of one place may lie
 
@@ -48,7 +52,7 @@ def confirmed(details: dict[str, Any], threshold: float) -> tuple[np.ndarray, np
     """Per query: whether it was a loop before the rule, and whether it still is with it (its
     newest frame reaches ``threshold``, or the next query's loop names the same place)."""
     loop, frames = loop_frames(details)
-    newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
+    newest = newest_z(details)
     following = np.append(loop[1:], False)
     after = np.append(frames[1:], -1)
     same_place = following & (np.abs(after - frames) <= SAME_PLACE)
@@ -60,10 +64,8 @@ def anchored(details: dict[str, Any], reach: int) -> tuple[np.ndarray, np.ndarra
     still is when only a loop answered at once, at most ``reach`` frames later, confirms a
     pending one (walking back from the end: a confirmed pending loop's next loop was the same
     place, answered or pending)."""
-    sequences = np.array(details["per_query_sequence"], float)
-    newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
     loop = np.array([s == "loop" for s in details["per_query_status"]])
-    pending = (sequences[:, 3] == 1) & (newest < CONFIRM_Z)
+    pending = weak_passes(details)
     kept = loop & ~pending
     anchor = np.full(len(loop), -1)  # the loop answered at once that confirms a pending one
     for i in range(len(loop) - 2, -1, -1):

@@ -3,8 +3,8 @@ of ``loopnet eval`` reports (issue 25, stop 48).
 
 The anonymous served row of gardenspoint_cohog200 is bound by verification: with MNN only
 0.685 of its queries are right with a match verified above the atlas's fitted minimum. A true
-revisit often verifies weakly against *several* neighbouring atlas frames (day/night at 99x56
-px: 8-20 inliers each), where a look-alike elsewhere verifies against none (the impostors'
+revisit often verifies weakly against *several* neighbouring atlas frames (the two sides of the
+path at 99x56 px: 8-20 inliers each), where a look-alike elsewhere verifies against none (the impostors'
 median is 0 inliers). The covisibility check of keyframe SLAM reads that: here, a match is
 closable when the inliers of every verified candidate of the best's place (frames within
 ``--gap`` of it along the route) add up to ``--minimums``, and the probability reads their sum
@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from served_report import served_rows  # a sibling script
 
+from service.evaluation.metrics import precision_recall
 from service.evaluation.served_pass import PARTS
 from service.ml.decision import DEFAULT_RIVAL_GAP, Evidence, decide_loop
 
@@ -90,16 +91,11 @@ def _picked(place: list[tuple[int, float, int]], best: int, support: int, pick: 
 
 
 def recall_at_full_precision(probabilities: np.ndarray, right: np.ndarray) -> float:
-    """Recall of the highest sweep over the closable answers (probability >= 0) with no wrong
-    answer at or above it; ties count together, as the harness counts them."""
-    order = np.argsort(-probabilities, kind="stable")
-    best = 0
-    for k, q in enumerate(order):
-        if probabilities[q] < 0 or not right[q]:
-            break
-        if k + 1 == len(order) or probabilities[order[k + 1]] < probabilities[q]:
-            best = k + 1  # every answer up to here is right
-    return best / len(right)
+    """R@100%P of the sweep over the closable answers (probability >= 0), as the harness sweeps
+    a served row (:func:`service.evaluation.metrics.precision_recall`)."""
+    closable = probabilities >= 0
+    curve = precision_recall(probabilities[closable], right[closable], len(right))
+    return curve.recall_at_full_precision
 
 
 def screen(

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from service.ml.sequences.distinctiveness import CONFIRM_Z
+
 
 def served_rows(report: dict[str, Any]) -> list[dict[str, Any]]:
     """The report's served rows (``loopnet-<extractor>-served`` and its ``+seqL``)."""
@@ -47,3 +49,16 @@ def sequence_loops(details: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     sequences = np.array(details["per_query_sequence"], float)
     loop, _ = loop_frames(details)
     return np.flatnonzero(loop & (sequences[:, 3] == 1)), np.array(details["per_query_right"], bool)
+
+
+def newest_z(details: dict[str, Any]) -> np.ndarray:
+    """Per query: the ``aligned_z`` of its sequence's newest frame (-inf without a sequence)."""
+    return np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]], float)
+
+
+def weak_passes(details: dict[str, Any]) -> np.ndarray:
+    """Per query: its sequence passed while the newest frame's own evidence is below
+    :data:`CONFIRM_Z`, the passes whose loops the service leaves pending from stop 46 on
+    (unless consistent single frames answer them at once)."""
+    passed = np.array(details["per_query_sequence"], float)[:, 3] == 1
+    return passed & (newest_z(details) < CONFIRM_Z)

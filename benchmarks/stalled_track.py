@@ -5,8 +5,8 @@ On nordland_64x32 driven the other way round (winter as the map, summer as the q
 ``--reference winter --query summer``) the service closes 2 false loops at the defaults,
 queries 769 and 770, both 4 frames behind the right place. The robot's sequence place stayed
 at map frame 765 for queries 766-769 and reached 766 at query 770: the track stalled while the
-robot moved, and its margin over the right place (4 frames on, a rival) stayed above the
-minimum. The service allows a place to lag behind a robot's recent loops (a robot may slow
+robot moved, and its margin over its best rival place (rivals lie more than 3 frames away,
+the right place among them) stayed above the minimum. The service allows a place to lag behind a robot's recent loops (a robot may slow
 down or stop); this measures what a guard "the place advanced at least ``--speeds`` map frames
 per frame over the last ``--frames`` frames" would refuse among the loops of each report's
 robot row, right and false, before anyone builds it.
@@ -35,10 +35,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from served_report import loop_frames, robot_row  # a sibling script
+from served_report import loop_frames, robot_row, weak_passes  # a sibling script
 
 from service.ml.sequences import SequenceSettings
-from service.ml.sequences.distinctiveness import CONFIRM_Z, TRACKING_DROPOUT
+from service.ml.sequences.distinctiveness import TRACKING_DROPOUT
 
 
 def stalled(details: dict[str, Any], frames: int, speed: float) -> np.ndarray:
@@ -62,10 +62,8 @@ def fell_behind(details: dict[str, Any], slack: float) -> np.ndarray:
     (a loop pending when its sequence passed with the newest ``aligned_z`` below
     :data:`CONFIRM_Z`, held at its sequence's frame)."""
     loop, frames = loop_frames(details)
-    sequences = np.array(details["per_query_sequence"], float)
-    newest = np.array([z[-1] if z else -np.inf for z in details["per_query_sequence_z"]])
-    pending = (sequences[:, 3] == 1) & (newest < CONFIRM_Z) & ~loop
-    held = np.where(loop, frames, np.where(pending, np.nan_to_num(sequences[:, 0], nan=-1), -1))
+    places = np.nan_to_num(np.array(details["per_query_sequence"], float)[:, 0], nan=-1)
+    held = np.where(loop, frames, np.where(weak_passes(details), places, -1))
     slowest = float(min(SequenceSettings().speeds))
     found = []
     for i in np.flatnonzero(loop):
@@ -75,6 +73,17 @@ def fell_behind(details: dict[str, Any], slack: float) -> np.ndarray:
                 found.append(i)
                 break
     return np.array(found, np.int64)
+
+
+def _tally(refused: np.ndarray, right: np.ndarray) -> dict[str, Any]:
+    """How many right loops a guard refuses, and which false ones."""
+    false = [int(q) for q in refused if not right[q]]
+    return {"right_refused": len(refused) - len(false), "false_refused": false}
+
+
+def _said(tally: dict[str, Any]) -> str:
+    false = tally["false_refused"]
+    return f"refuses {tally['right_refused']} right, {len(false)} false {false[:10]}"
 
 
 def main() -> None:
@@ -95,30 +104,16 @@ def main() -> None:
         record[str(path)] = []
         for frames in (int(v) for v in args.frames.split(",")):
             for speed in (float(v) for v in args.speeds.split(",")):
-                refused = stalled(details, frames, speed)
-                false = [int(q) for q in refused if not right[q]]
-                print(
-                    f"  advanced < {speed:g} frames a frame over {frames}: refuses "
-                    f"{len(refused) - len(false)} right, {len(false)} false {false[:10]}"
-                )
-                record[str(path)].append(
-                    {
-                        "frames": frames,
-                        "speed": speed,
-                        "right_refused": len(refused) - len(false),
-                        "false_refused": false,
-                    }
-                )
+                tally = _tally(stalled(details, frames, speed), right)
+                print(f"  advanced < {speed:g} frames a frame over {frames}: {_said(tally)}")
+                record[str(path)].append({"frames": frames, "speed": speed, **tally})
         for slack in (float(v) for v in args.slacks.split(",")):
-            refused = fell_behind(details, slack)
-            false = [int(q) for q in refused if not right[q]]
+            tally = _tally(fell_behind(details, slack), right)
             print(
                 f"  behind a recent loop by more than the slowest speed, slack {slack:g}: "
-                f"refuses {len(refused) - len(false)} right, {len(false)} false {false[:10]}"
+                f"{_said(tally)}"
             )
-            record[str(path)].append(
-                {"slack": slack, "right_refused": len(refused) - len(false), "false_refused": false}
-            )
+            record[str(path)].append({"slack": slack, **tally})
     if args.out:
         args.out.write_text(json.dumps(record, indent=1) + "\n")
 
